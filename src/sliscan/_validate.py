@@ -1,0 +1,144 @@
+"""Shared input checks, image I/O at the file boundary, and atomic writes.
+
+Every check raises `InputError` (a `ValueError`) with a one-line message that names what is
+wrong: ``yp_map must have shape (480, 640) (H, W), got (640, 480)``.  File readers put the file
+name first: ``scan.png: not an image (cannot decode)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+class InputError(ValueError):
+    """Bad input: a file, an array or a parameter the library cannot use (one-line message)."""
+
+
+def check_finite_matrix(name: str, value: object, shape: tuple[int, ...]) -> NDArray[np.float64]:
+    """`value` as a float64 array of exactly `shape` with only finite entries."""
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be numeric with shape {shape}") from None
+    if arr.shape != shape:
+        raise InputError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} has non-finite entries (NaN or inf)")
+    return arr
+
+
+def check_image(name: str, image: object, *, shape: tuple[int, int] | None = None) -> NDArray[np.float32]:
+    """A 2-D image as float32 in [0, 1] (uint8 / uint16 are scaled), never the caller's array.
+
+    Parameters
+    ----------
+    name : str
+        Used in the error message.
+    image : (H, W) array
+        uint8, uint16, bool or float (floats are taken as already in [0, 1]).
+    shape : (H, W), optional
+        Required shape.
+    """
+    arr = np.asarray(image)
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        raise InputError(f"{name} must be a grey (H, W) image, got colour shape {arr.shape}")
+    if arr.ndim != 2:
+        raise InputError(f"{name} must be a 2-D (H, W) image, got shape {arr.shape}")
+    if shape is not None and arr.shape != tuple(shape):
+        raise InputError(f"{name} must have shape {tuple(shape)} (H, W), got {arr.shape}")
+    if arr.dtype == np.uint8:
+        return arr.astype(np.float32) / np.float32(255)
+    if arr.dtype == np.uint16:
+        return arr.astype(np.float32) / np.float32(65535)
+    if arr.dtype == np.bool_:
+        return arr.astype(np.float32)
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise InputError(f"{name} must be uint8, uint16 or float, got {arr.dtype}")
+    out = arr.astype(np.float32, copy=True)
+    if not np.all(np.isfinite(out)):
+        raise InputError(f"{name} has non-finite pixels (NaN or inf)")
+    return out
+
+
+def read_image(path: str | os.PathLike) -> NDArray[np.float32]:
+    """Read a grey image file (PNG, BMP, TIFF, ...) as ``(H, W)`` float32 in [0, 1].
+
+    Colour images are converted to grey (OpenCV's luma weights); 16-bit files keep their depth.
+    """
+    import cv2
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    data = np.fromfile(p, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise InputError(f"{p}: not an image (cannot decode)")
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(img, code)
+    if img.dtype not in (np.uint8, np.uint16):
+        img = img.astype(np.float32)
+        if img.max(initial=0) > 1:
+            raise InputError(f"{p}: float image values must lie in [0, 1]")
+    return check_image(str(p), img)
+
+
+def to_uint8(image: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """Quantise a [0, 1] float image to 8 bits (round half up, clipped)."""
+    return np.clip(np.floor(np.asarray(image, dtype=np.float64) * 255 + 0.5), 0, 255).astype(np.uint8)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, *, inputs: tuple[str | os.PathLike, ...] = ()) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; on success rename it onto `path`, else delete it.
+
+    Creates the parent folder.  Refuses to write onto any of `inputs` (never overwrite an input).
+    The temporary name keeps the suffix of `path` so writers that look at it (OpenCV) work.
+    """
+    target = Path(path)
+    for src in inputs:
+        if Path(src).exists() and target.exists() and os.path.samefile(src, target):
+            raise InputError(f"{target}: refusing to overwrite an input file")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{target.suffix}", dir=target.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, target)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write `data` to `path` through a temporary file and a rename."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` (UTF-8) to `path` through a temporary file and a rename."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def write_image(path: str | os.PathLike, image: NDArray, *, inputs: tuple[str | os.PathLike, ...] = ()) -> Path:
+    """Write an 8-bit (or uint16) grey image atomically; float images are quantised to 8 bits."""
+    import cv2
+
+    arr = np.asarray(image)
+    if arr.dtype not in (np.uint8, np.uint16):
+        arr = to_uint8(arr)
+    with atomic_path(path, inputs=inputs) as tmp:
+        if not cv2.imwrite(str(tmp), arr):
+            raise InputError(f"{path}: cannot write an image with this file extension")
+    return Path(path)

@@ -1,0 +1,357 @@
+"""The small frozen records that travel between stages.
+
+`PatternSpec` says what was projected, `Calibration` how the camera and the projector see the
+world, and `ScanResult` what a scan produced.  Conventions (DESIGN.md): images are ``(H, W)``,
+pixel centres at integers, world coordinates in millimetres, ``(W, H)`` only at file and CLI
+boundaries.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sliscan._validate import InputError, atomic_write_text, check_finite_matrix
+
+#: The pattern kinds this version knows.
+PATTERN_KINDS = ("composite", "carrier_only", "modified_composite")
+ORIENTATIONS = ("rows", "columns")
+
+
+@dataclass(frozen=True)
+class PatternSpec:
+    """Everything needed to generate a pattern and to decode a capture of it.
+
+    Attributes
+    ----------
+    kind : str
+        ``"composite"`` (thesis eq. 3.1), ``"carrier_only"`` (fig. 3.9: every carrier on
+        everywhere), or ``"modified_composite"`` (section 6.2: composite plus a sine along the
+        phase direction).
+    projector_size : (W, H) tuple of int
+        Projector resolution in pixels.
+    bits : int
+        Number of Gray code bits; the pattern has ``2**bits`` stripes (``2**bits - 1`` with
+        `skip_zero_code`).  Bit 0 is the most significant (the coarsest stripes).
+    carriers : tuple of float
+        One carrier frequency per bit, in cycles per projector width (along the orthogonal
+        direction), bit 0 first.
+    weights : tuple of float
+        Amplitude weight of each carrier (roll-off pre-compensation, fig. 3.13), same length
+        as `carriers`; the pilot carrier, if any, has weight `pilot_weight`.
+    a_p, b_p : float
+        Projection constants of eq. 3.1: ``I = a_p + b_p * sum_n w_n I_n cos(2 pi f_n x)``,
+        in [0, 1] units of full projector drive.
+    gamma : float
+        Gamma pre-correction applied to the pattern (``I ** (1 / gamma)``); 1 means none.
+    orientation : str
+        ``"rows"`` (default, DESIGN.md): stripes are horizontal bands that code the projector
+        row `yp`, carriers run along `x`.  ``"columns"``: stripes code `xp`, carriers along `y`.
+    pilot : float or None
+        Frequency (cycles per projector width) of a reference carrier that is on everywhere
+        the projector lights; it tells a lit all-zero code from shadow and normalises every bit
+        envelope.  None: no pilot (the thesis's pattern).
+    pilot_weight : float
+        Amplitude weight of the pilot carrier.
+    skip_zero_code : bool
+        If true, stripe ``k`` carries the Gray code of ``k + 1`` so the all-zero code (no
+        carrier at all, indistinguishable from shadow in one frame) is never projected.
+    modified_frequency : float
+        Frequency of the sine along the phase direction of the modified composite pattern,
+        in cycles per projector height (section 6.2 uses 15); used only by that kind.
+    modified_amplitude : float
+        Amplitude of that sine, in the same units as `b_p`.
+    image : str or None
+        File name of the pattern image, relative to the JSON file.
+    """
+
+    kind: str = "composite"
+    projector_size: tuple[int, int] = (1024, 768)
+    bits: int = 4
+    carriers: tuple[float, ...] = (32.0, 64.0, 96.0, 128.0)
+    weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
+    a_p: float = 0.5
+    b_p: float = 0.125
+    gamma: float = 1.0
+    orientation: str = "rows"
+    pilot: float | None = None
+    pilot_weight: float = 1.0
+    skip_zero_code: bool = False
+    modified_frequency: float = 15.0
+    modified_amplitude: float = 0.0
+    image: str | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "projector_size", tuple(int(v) for v in self.projector_size))
+        object.__setattr__(self, "carriers", tuple(float(v) for v in self.carriers))
+        object.__setattr__(self, "weights", tuple(float(v) for v in self.weights))
+        problems = self._problems()
+        if problems:
+            raise InputError(f"invalid pattern spec: {problems[0]}")
+
+    def _problems(self) -> list[str]:
+        out = []
+        w, h = self.projector_size
+        if self.kind not in PATTERN_KINDS:
+            out.append(f"kind must be one of {PATTERN_KINDS}, got {self.kind!r}")
+        if w < 8 or h < 8:
+            out.append(f"projector_size must be at least 8x8, got {w}x{h}")
+        if not 1 <= self.bits <= 16:
+            out.append(f"bits must be in 1..16, got {self.bits}")
+        if len(self.carriers) != self.bits:
+            out.append(f"need one carrier per bit ({self.bits}), got {len(self.carriers)}")
+        if len(self.weights) != len(self.carriers):
+            out.append(f"need one weight per carrier ({len(self.carriers)}), got {len(self.weights)}")
+        allc = self.all_carriers
+        nyquist = (w if self.orientation == "rows" else h) / 2
+        if any(not (0 < f < nyquist) for f in allc):
+            out.append(f"carriers must lie in (0, {nyquist:g}) cycles per projector width, got {list(allc)}")
+        if len(set(allc)) != len(allc):
+            out.append(f"carriers must be distinct, got {list(allc)}")
+        if self.orientation not in ORIENTATIONS:
+            out.append(f"orientation must be one of {ORIENTATIONS}, got {self.orientation!r}")
+        if not (self.gamma > 0 and math.isfinite(self.gamma)):
+            out.append(f"gamma must be positive, got {self.gamma}")
+        if self.stripes > (h if self.orientation == "rows" else w):
+            out.append(f"{self.stripes} stripes do not fit in {h if self.orientation == 'rows' else w} projector lines")
+        return out
+
+    @property
+    def all_carriers(self) -> tuple[float, ...]:
+        """Bit carriers followed by the pilot carrier, if any (cycles per projector width)."""
+        return self.carriers + ((float(self.pilot),) if self.pilot is not None else ())
+
+    @property
+    def all_weights(self) -> tuple[float, ...]:
+        """Weights parallel to `all_carriers`."""
+        return self.weights + ((float(self.pilot_weight),) if self.pilot is not None else ())
+
+    @property
+    def stripes(self) -> int:
+        """Number of distinct stripes (codes actually projected)."""
+        return 2**self.bits - (1 if self.skip_zero_code else 0)
+
+    @property
+    def phase_lines(self) -> int:
+        """Projector lines along the phase direction (H for rows, W for columns)."""
+        w, h = self.projector_size
+        return h if self.orientation == "rows" else w
+
+    @property
+    def orthogonal_lines(self) -> int:
+        """Projector lines along the carrier direction (W for rows, H for columns)."""
+        w, h = self.projector_size
+        return w if self.orientation == "rows" else h
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["projector_size"] = list(self.projector_size)
+        d["carriers"] = list(self.carriers)
+        d["weights"] = list(self.weights)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], *, source: str = "pattern spec") -> PatternSpec:
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"{source}: unknown keys {unknown}")
+        try:
+            return cls(**d)
+        except InputError as exc:
+            raise InputError(f"{source}: {exc}") from None
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{source}: {exc}") from None
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the spec as JSON (atomically)."""
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> PatternSpec:
+        """Read a spec written by `save`; raises `InputError` naming the file."""
+        d = _load_json(path)
+        return cls.from_dict(d, source=str(path))
+
+    def with_(self, **changes: Any) -> PatternSpec:
+        """A copy with some fields changed (validated again)."""
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True, eq=False)
+class Device:
+    """One pinhole device (camera or projector): ``x ~ matrix @ [Xw, Yw, Zw, 1]``.
+
+    Attributes
+    ----------
+    matrix : (3, 4) float64 array
+        World (mm) -> pixel projection matrix, defined up to scale.
+    size : (W, H) tuple of int
+        Image size in pixels.
+    intrinsics : (3, 3) float64 array or None
+        K, when known; then ``matrix = K [R | t]``.
+    distortion : (5,) float64 array or None
+        OpenCV lens distortion ``k1, k2, p1, p2, k3`` (goes with `intrinsics`).
+    """
+
+    matrix: NDArray[np.float64]
+    size: tuple[int, int]
+    intrinsics: NDArray[np.float64] | None = None
+    distortion: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "matrix", check_finite_matrix("matrix", self.matrix, (3, 4)))
+        w, h = (int(v) for v in self.size)
+        if w < 1 or h < 1:
+            raise InputError(f"size must be positive (W, H), got {self.size}")
+        object.__setattr__(self, "size", (w, h))
+        if self.intrinsics is not None:
+            object.__setattr__(self, "intrinsics", check_finite_matrix("intrinsics", self.intrinsics, (3, 3)))
+        if self.distortion is not None:
+            object.__setattr__(self, "distortion", check_finite_matrix("distortion", np.ravel(self.distortion), (5,)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the device's images."""
+        return (self.size[1], self.size[0])
+
+    def project(self, xyz_w: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Pixel coordinates ``(..., 2)`` (x, y) of world points ``(..., 3)`` in mm (pinhole only)."""
+        xyz_w = np.asarray(xyz_w, dtype=np.float64)
+        h = xyz_w @ self.matrix[:, :3].T + self.matrix[:, 3]
+        return h[..., :2] / h[..., 2:3]
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"matrix": self.matrix.tolist(), "size": list(self.size)}
+        if self.intrinsics is not None:
+            d["intrinsics"] = self.intrinsics.tolist()
+        if self.distortion is not None:
+            d["distortion"] = self.distortion.tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], *, source: str) -> Device:
+        if not isinstance(d, dict) or "matrix" not in d or "size" not in d:
+            raise InputError(f"{source}: a device needs 'matrix' and 'size'")
+        try:
+            return cls(
+                matrix=np.asarray(d["matrix"], dtype=np.float64),
+                size=tuple(d["size"]),
+                intrinsics=None if d.get("intrinsics") is None else np.asarray(d["intrinsics"], dtype=np.float64),
+                distortion=None if d.get("distortion") is None else np.asarray(d["distortion"], dtype=np.float64),
+            )
+        except InputError as exc:
+            raise InputError(f"{source}: {exc}") from None
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{source}: {exc}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Camera and projector projection matrices (thesis eqs. 4.3 and 4.6).
+
+    Attributes
+    ----------
+    camera, projector : Device
+    extra : dict
+        Free-form extra keys written to the JSON (method, residuals, ...).
+    """
+
+    camera: Device
+    projector: Device
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"camera": self.camera.to_dict(), "projector": self.projector.to_dict(), **self.extra}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], *, source: str = "calibration") -> Calibration:
+        if not isinstance(d, dict) or "camera" not in d or "projector" not in d:
+            raise InputError(f"{source}: a calibration needs 'camera' and 'projector'")
+        extra = {k: v for k, v in d.items() if k not in ("camera", "projector")}
+        return cls(Device.from_dict(d["camera"], source=f"{source}: camera"),
+                   Device.from_dict(d["projector"], source=f"{source}: projector"), extra)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the calibration JSON (DESIGN.md format), atomically."""
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Calibration:
+        """Read a calibration JSON; raises `InputError` naming the file."""
+        return cls.from_dict(_load_json(path), source=str(path))
+
+
+@dataclass(frozen=True, eq=False)
+class ScanResult:
+    """What one scan produced, per camera pixel.
+
+    Attributes
+    ----------
+    points : (H, W, 3) float32 array
+        Xw, Yw, Zw in mm; NaN where invalid.
+    valid : (H, W) bool array
+    texture : (H, W) float32 array
+        Albedo-like texture in [0, 1] (the capture's local mean), for colouring and mat5 ``C``.
+    proj_map : (H, W) float32 array
+        Projector coordinate along the phase direction seen by each pixel (`yp` for the rows
+        orientation, `xp` for columns), in projector pixels; NaN where undecoded.
+    stripe : (H, W) int16 array
+        Decoded stripe index, -1 where undecoded.
+    confidence : (H, W) float32 array
+        Decision margin in [0, 1] (0 = a coin toss, 1 = every bit unambiguous).
+    timings : dict of str -> float
+        Seconds spent in each stage.
+    """
+
+    points: NDArray[np.float32]
+    valid: NDArray[np.bool_]
+    texture: NDArray[np.float32]
+    proj_map: NDArray[np.float32]
+    stripe: NDArray[np.int16]
+    confidence: NDArray[np.float32]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.valid.shape  # type: ignore[return-value]
+
+    def save_mat5(self, prefix: str | os.PathLike) -> list[Path]:
+        """Write ``PREFIX{X,Y,Z}.byt``, ``PREFIXC.bmp``, ``PREFIXI.bmp``; returns the paths."""
+        from sliscan.formats import mat5
+
+        return mat5.write_mat5(prefix, self.points, self.valid, self.texture)
+
+    def save_ply(self, path: str | os.PathLike) -> Path:
+        """Write the valid points as a binary PLY point cloud with texture grey levels."""
+        from sliscan.formats import ply
+
+        return ply.write_point_cloud(path, self.points[self.valid], self.texture[self.valid])
+
+    def save_npz(self, path: str | os.PathLike) -> Path:
+        """Write every array of the result to one compressed npz file."""
+        from sliscan.formats import npz
+
+        return npz.write_scan_npz(path, self)
+
+
+def _load_json(path: str | os.PathLike) -> dict[str, Any]:
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{p}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(d, dict):
+        raise InputError(f"{p}: expected a JSON object")
+    return d
