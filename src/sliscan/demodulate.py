@@ -1,0 +1,376 @@
+"""Carrier detection and demodulation of a composite-pattern capture (thesis 3.3-3.4).
+
+The capture of eq. 3.2 holds, along every camera line in the carrier direction, a sum of
+cosine carriers whose amplitudes are the Gray code bit planes (times albedo and gain), on top
+of a slowly varying DC.  Demodulation recovers, per pixel, the amplitude of each carrier.
+
+Two demodulators share one output type, `Demodulated`:
+
+* `demodulate_bandpass` is the thesis's: per carrier a Butterworth band-pass along the line
+  with the other carriers notched, applied to the one-sided spectrum (the analytic signal,
+  eqs. 3.3-3.4), whose magnitude is the envelope.
+* `demodulate_window` (the default) fits the carriers in a sliding window of exactly one
+  period of the carriers' common spacing, where they are orthogonal, so the fit is a running
+  correlation computed with cumulative sums.  Each pixel takes the window placement (ending
+  at, centred on, or starting at the pixel) that the carrier model explains best, so a window
+  never needs to straddle a depth edge, a shadow border or an albedo edge when a clean one
+  exists on either side: this is what keeps neighbours' light out of a pixel's envelopes.
+
+Frequencies are in cycles per camera pixel along the carrier direction (camera `x` for the
+``rows`` orientation, camera `y` for ``columns``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sliscan._validate import InputError, check_image
+from sliscan.types import PatternSpec
+
+
+@dataclass(frozen=True)
+class Carriers:
+    """Carrier frequencies found in a capture.
+
+    Attributes
+    ----------
+    frequencies : (C,) float64 array
+        Cycles per camera pixel along the carrier direction: bit carriers first (bit 0 =
+        most significant), then the pilot, as in ``PatternSpec.all_carriers``.
+    scale : float
+        Projector pixels per camera pixel along the carrier direction (``f_cam = scale *
+        f_proj / W_p``).
+    window : int
+        Demodulation window, camera pixels: one period of the carriers' common spacing.
+    """
+
+    frequencies: NDArray[np.float64]
+    scale: float
+    window: int
+
+
+@dataclass(frozen=True, eq=False)
+class Demodulated:
+    """Per-pixel carrier amplitudes and local mean of a capture.
+
+    Attributes
+    ----------
+    amplitude : (C, H, W) float32 array
+        Envelope of each carrier (peak amplitude, same units as the image), ordered like
+        `Carriers.frequencies`.
+    dc : (H, W) float32 array
+        Local mean intensity over the same window (the albedo-weighted DC of eq. 3.2).
+    residual : (H, W) float32 array
+        Fraction of the window's AC energy that the carrier model leaves unexplained, in
+        [0, 1]: high at edges, in shadow and where the signal is noise.
+    """
+
+    amplitude: NDArray[np.float32]
+    dc: NDArray[np.float32]
+    residual: NDArray[np.float32]
+
+
+def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
+    """View of `image` whose axis 1 runs along the carriers (a transpose for ``columns``)."""
+    return image if spec.orientation == "rows" else image.T
+
+
+def line_spectrum(image: NDArray[np.floating], *, max_lines: int = 256) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Mean power spectrum of the image lines along axis 1 (fig. 3.19's first row).
+
+    Uses at most `max_lines` evenly spaced lines, each with its mean removed and a Hann
+    window.  Returns ``(frequencies in cycles per pixel, power)``, both ``(W // 2 + 1,)``.
+    """
+    h, w = image.shape
+    lines = np.asarray(image[:: max(1, h // max_lines)], dtype=np.float64)
+    lines = lines - lines.mean(axis=1, keepdims=True)
+    power = np.abs(np.fft.rfft(lines * np.hanning(w), axis=1)) ** 2
+    return np.fft.rfftfreq(w), power.mean(axis=0)
+
+
+def _common_spacing(carriers: NDArray[np.float64]) -> float:
+    """Largest spacing of which every carrier is (nearly) an integer multiple."""
+    srt = np.sort(carriers)
+    gap = float(np.min(np.diff(srt))) if srt.size > 1 else float(srt[0])
+    gap = min(gap, float(srt[0]))
+    for divisor in range(1, 9):
+        d = gap / divisor
+        if np.all(np.abs(carriers / d - np.round(carriers / d)) < 0.02):
+            return d
+    return gap
+
+
+def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
+    """Find the carriers of `spec` in a capture (thesis 3.3): detect, don't assume.
+
+    Perspective scales every carrier by the same factor, so the search is over one scale:
+    the one whose carriers all sit on spectral peaks (sum of log powers), then refined by a
+    parabolic fit on each peak and a least-squares common scale.
+
+    Raises
+    ------
+    InputError
+        If the capture is too small for the carriers or no carrier peaks are found.
+    """
+    img = along_carriers(check_image("capture", image), spec)
+    width = img.shape[1]
+    proj = np.asarray(spec.all_carriers, dtype=np.float64) / spec.orthogonal_lines  # cycles / projector px
+    freqs, power = line_spectrum(img)
+    logp = np.log(power + power.max() * 1e-12 + 1e-30)
+    s_hi = 0.45 / proj.max()
+    s_lo = 4.0 / (width * proj.min())
+    if s_lo >= s_hi:
+        raise InputError(f"capture is {width} px along the carriers: too short to resolve them")
+    scales = np.exp(np.arange(np.log(s_lo), np.log(s_hi), 0.5 / (width * proj.max())))
+    bins = scales[:, None] * proj[None, :] * width  # fractional rfft bins
+    score = np.interp(bins, np.arange(freqs.size), logp).sum(axis=1)
+    scale = float(scales[np.argmax(score)])
+
+    gap = _common_spacing(proj) * scale * width  # in bins
+    refined = np.empty_like(proj)
+    for n, b in enumerate(proj * scale * width):
+        lo, hi = max(1, int(np.floor(b - 0.3 * gap))), min(freqs.size - 2, int(np.ceil(b + 0.3 * gap)))
+        k = lo + int(np.argmax(logp[lo : hi + 1]))
+        a, c, e = logp[k - 1], logp[k], logp[k + 1]
+        den = a - 2 * c + e
+        refined[n] = k + (0.5 * (a - e) / den if den < 0 else 0.0)
+    peak_gain = logp[np.round(refined).astype(int)] - np.median(logp)
+    if np.any(peak_gain < np.log(4.0)):
+        raise InputError("no composite-pattern carriers found in the capture (is the pattern spec right?)")
+    scale = float(np.sum(refined * proj) / np.sum(proj * proj) / width)
+    window = int(round(1.0 / (_common_spacing(proj) * scale)))
+    if window > width:
+        raise InputError(f"capture is {width} px along the carriers, shorter than one carrier spacing ({window} px)")
+    return Carriers(frequencies=proj * scale, scale=scale, window=window)
+
+
+def _window_bounds(width: int, window: int, placement: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Start and end (exclusive) of each pixel's window: placement -1 ends at the pixel,
+    0 is centred on it, +1 starts at it; windows are shifted inside the line at its ends."""
+    x = np.arange(width)
+    offset = {-1: window - 1, 0: window // 2, 1: 0}[placement]
+    start = np.clip(x - offset, 0, width - window)
+    return start, start + window
+
+
+def _running_mean(cum: NDArray, start: NDArray[np.intp], end: NDArray[np.intp], window: int) -> NDArray:
+    return (cum[:, end] - cum[:, start]) / window
+
+
+def _cumsum0(values: NDArray) -> NDArray:
+    out = np.zeros((values.shape[0], values.shape[1] + 1), dtype=values.dtype)
+    np.cumsum(values, axis=1, out=out[:, 1:])
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _WindowTables:
+    """Per-window-start constants of the local least-squares fit (see `_fit_windows`).
+
+    For carrier n and a window starting at s, with ``t`` the offset from the window's
+    centre: ``g[n, s]`` = mean of ``exp(-i w_n x)``, ``h[n, s]`` = mean of
+    ``t exp(-i w_n x)``; ``t2`` = mean of ``t**2``.
+    """
+
+    phasors: NDArray[np.complex128]  # (C, W)
+    g: NDArray[np.complex128]  # (C, W)
+    h: NDArray[np.complex128]  # (C, W)
+    t2: float
+    window: int
+
+    @classmethod
+    def build(cls, width: int, carriers: Carriers) -> _WindowTables:
+        window = carriers.window
+        x = np.arange(width, dtype=np.float64)
+        phasors = np.exp(-2j * np.pi * carriers.frequencies[:, None] * x[None, :])
+        t = np.arange(window) - (window - 1) / 2
+        # correlate (not convolve): g[n, s] = mean_j ph[n, s + j] * kernel[j]
+        g = np.stack([np.correlate(ph, np.ones(window) / window, mode="valid") for ph in phasors])
+        h = np.stack([np.correlate(ph, t / window, mode="valid") for ph in phasors])
+        pad = ((0, 0), (0, window - 1))
+        return cls(phasors, np.pad(g, pad), np.pad(h, pad), float(np.mean(t * t)), window)
+
+
+def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
+                 iterations: int = 2) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Least-squares fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` in each window.
+
+    Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
+    but not to a ramp: an albedo gradient across the window would leak into every carrier.
+    The coupling terms are known per window start (`_WindowTables`), so the normal equations
+    are solved by a few fixed-point sweeps, all element-wise.
+
+    Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...))``.
+    """
+    cum_i, cum_i2, cum_xi, cum_q = cums
+    win = tables.window
+    end = start + win
+    centre = start + (win - 1) / 2
+    m0 = _running_mean(cum_i, start, end, win)
+    m1 = _running_mean(cum_xi, start, end, win) - centre * m0
+    q = np.stack([_running_mean(cq, start, end, win) for cq in cum_q])  # (C, lines, W)
+    g, h = tables.g[:, start][:, None, :], tables.h[:, start][:, None, :]
+    c = q
+    for _ in range(iterations):
+        d = m0 - 2 * np.sum((c * np.conj(g)).real, axis=0)
+        slope = (m1 - 2 * np.sum((c * np.conj(h)).real, axis=0)) / tables.t2
+        c = q - d * g - slope * h
+    var = np.maximum(_running_mean(cum_i2, start, end, win) - m0 * m0, 0)
+    amp = 2 * np.abs(c)
+    explained = slope * slope * tables.t2 + 0.5 * np.sum(amp * amp, axis=0)
+    return np.maximum(var - explained, 0), var, d, amp
+
+
+def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
+                      chunk_lines: int = 128) -> Demodulated:
+    """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
+
+    In every window of one spacing period the line is fitted with a DC, a ramp (albedo
+    gradients) and the carriers (`_fit_windows`); all sums come from cumulative sums, so
+    the cost does not depend on the window length.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Capture with the carriers along axis 1 (see `along_carriers`).
+    carriers : Carriers
+        From `detect_carriers`.
+    adaptive : bool
+        Also fit the windows that end and start at the pixel, and keep the one that leaves
+        the least AC energy unexplained (absolute, so a dark window in shadow beats one that
+        straddles the shadow border).  The centred window is kept unless a one-sided one
+        leaves less than half its unexplained energy: where the code changes gradually
+        across the window (an oblique stripe border) the centred fit is the unbiased one.
+        If false, always the centred window.
+    chunk_lines : int
+        Lines processed at once (bounds memory).
+
+    Returns
+    -------
+    Demodulated
+        In the same (axis-1-along-carriers) frame as `image`.
+    """
+    img = check_image("capture", image)
+    h, w = img.shape
+    tables = _WindowTables.build(w, carriers)
+    starts = [_window_bounds(w, carriers.window, p)[0] for p in ((0, -1, 1) if adaptive else (0,))]
+    x = np.arange(w, dtype=np.float64)
+    amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
+    dc = np.empty((h, w), dtype=np.float32)
+    residual = np.empty((h, w), dtype=np.float32)
+    for r0 in range(0, h, chunk_lines):
+        block = img[r0 : r0 + chunk_lines].astype(np.float64)
+        cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
+                [_cumsum0(block * ph) for ph in tables.phasors])
+        best = list(_fit_windows(cums, starts[0], tables))
+        centre_unexplained = best[0]
+        for start in starts[1:]:
+            fit = _fit_windows(cums, start, tables)
+            better = (fit[0] < best[0]) & (fit[0] < 0.5 * centre_unexplained)
+            for i, new in enumerate(fit):
+                best[i] = np.where(better if i < 3 else better[None], new, best[i])
+        amp[:, r0 : r0 + chunk_lines] = best[3]
+        dc[r0 : r0 + chunk_lines] = best[2]
+        residual[r0 : r0 + chunk_lines] = best[0] / np.maximum(best[1], 1e-12)
+    return Demodulated(amplitude=amp, dc=dc, residual=residual)
+
+
+def butterworth_bandpass(freqs: NDArray[np.float64], centre: float, half_width: float, order: int) -> NDArray[np.float64]:
+    """Butterworth band-pass magnitude ``1 / sqrt(1 + ((f - fc) / hw) ** (2 order))`` (fig. 3.21)."""
+    return 1.0 / np.sqrt(1.0 + ((freqs - centre) / half_width) ** (2 * order))
+
+
+def bandpass_filters(width: int, carriers: Carriers, *, order: int = 4, bandwidth: float = 0.5) -> NDArray[np.float64]:
+    """One-sided band-pass transfer functions, one per carrier, ``(C, width)`` over `fftfreq`.
+
+    Each passes its carrier (half-width `bandwidth` times the spacing to the nearest other
+    carrier), notches every other carrier with the complement of a band-pass of the same
+    shape, blocks DC, and is zero at negative frequencies (the Hilbert step of eq. 3.4; the
+    factor 2 restores the amplitude of the analytic signal).
+    """
+    f = np.fft.fftfreq(width)
+    cf = carriers.frequencies
+    gaps = np.abs(cf[:, None] - cf[None, :]) + np.diag(np.full(cf.size, np.inf))
+    half = bandwidth * np.minimum(gaps.min(axis=1), cf)
+    filters = np.empty((cf.size, width))
+    for n, fc in enumerate(cf):
+        h = butterworth_bandpass(f, fc, half[n], order)
+        for m, fm in enumerate(cf):
+            if m != n:
+                h *= 1.0 - butterworth_bandpass(f, fm, 0.5 * half[m], order)
+        h *= 1.0 - butterworth_bandpass(f, 0.0, 0.5 * half[n], order)
+        filters[n] = 2.0 * h * (f > 0)
+    return filters
+
+
+def demodulate_bandpass(image: NDArray[np.floating], carriers: Carriers, *, order: int = 4,
+                        bandwidth: float = 0.5, chunk_lines: int = 256) -> Demodulated:
+    """The thesis's demodulator (section 3.4, eqs. 3.3-3.4): Butterworth band-pass + Hilbert.
+
+    Each line is Fourier transformed; per carrier the spectrum is multiplied by its one-sided
+    band-pass (`bandpass_filters`) and inverse transformed; the envelope is the magnitude of
+    that analytic signal.  The DC map is a Butterworth low-pass of the same width.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Capture with the carriers along axis 1.
+    carriers : Carriers
+    order : int
+        Butterworth order.
+    bandwidth : float
+        Pass-band half-width as a fraction of the spacing to the nearest carrier.
+    """
+    img = check_image("capture", image)
+    h, w = img.shape
+    filters = bandpass_filters(w, carriers, order=order, bandwidth=bandwidth)
+    f = np.fft.fftfreq(w)
+    lowpass = butterworth_bandpass(f, 0.0, 0.5 * bandwidth * carriers.frequencies.min(), order)
+    amp = np.empty((filters.shape[0], h, w), dtype=np.float32)
+    dc = np.empty((h, w), dtype=np.float32)
+    residual = np.empty((h, w), dtype=np.float32)
+    for r0 in range(0, h, chunk_lines):
+        spec = np.fft.fft(img[r0 : r0 + chunk_lines].astype(np.float64), axis=1)
+        mean = np.fft.ifft(spec * lowpass, axis=1).real
+        a = np.abs(np.fft.ifft(spec[None] * filters[:, None, :], axis=2))
+        power = np.abs(np.fft.ifft(spec * (1 - lowpass), axis=1)) ** 2
+        amp[:, r0 : r0 + chunk_lines] = a
+        dc[r0 : r0 + chunk_lines] = mean
+        residual[r0 : r0 + chunk_lines] = np.clip(1 - 0.5 * np.sum(a * a, axis=0) / np.maximum(power, 1e-12), 0, 1)
+    return Demodulated(amplitude=amp, dc=dc, residual=residual)
+
+
+def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = "window",
+               carriers: Carriers | None = None) -> tuple[Demodulated, Carriers]:
+    """Detect the carriers (unless given) and demodulate a capture in camera orientation.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        The camera frame.
+    spec : PatternSpec
+        What was projected.
+    method : {"window", "bandpass"}
+        `demodulate_window` (default) or the thesis's `demodulate_bandpass`.
+    carriers : Carriers, optional
+        Reuse carriers found earlier (e.g. for a video of the same rig).
+
+    Returns
+    -------
+    (Demodulated, Carriers)
+        Maps are ``(H, W)`` / ``(C, H, W)`` in the camera's own orientation.
+    """
+    img = check_image("capture", image)
+    if method not in ("window", "bandpass"):
+        raise InputError(f"method must be 'window' or 'bandpass', got {method!r}")
+    view = along_carriers(img, spec)
+    found = carriers if carriers is not None else detect_carriers(img, spec)
+    run = demodulate_window if method == "window" else demodulate_bandpass
+    out = run(view, found)
+    if spec.orientation == "columns":
+        out = Demodulated(np.ascontiguousarray(out.amplitude.transpose(0, 2, 1)),
+                          np.ascontiguousarray(out.dc.T), np.ascontiguousarray(out.residual.T))
+    return out, found

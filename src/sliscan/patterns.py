@@ -1,0 +1,251 @@
+"""Gray code and the composite pattern (thesis section 3.1, eq. 3.1; section 6.2).
+
+A composite pattern puts every Gray code bit plane on its own cosine carrier along the
+orthogonal direction and sums them into one projected image::
+
+    I_p(x_p, y_p) = A_p + B_p * sum_n w_n * I_n(y_p) * cos(2 pi f_n x_p / W_p)        (eq. 3.1)
+
+`I_n(y_p)` is bit `n` (0 = most significant) of the Gray code of the stripe that projector
+row `y_p` belongs to; `f_n` is in cycles per projector width.  With ``orientation="columns"``
+the roles of x and y swap.  Stripe ``k`` covers the projector lines
+``[k * L / S, (k + 1) * L / S)`` of the `L` lines along the phase direction (`S` stripes), so
+its centre line is ``(k + 0.5) * L / S - 0.5`` (pixel centres at integers).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sliscan._validate import InputError, atomic_path, to_uint8
+from sliscan.types import PatternSpec
+
+#: The thesis's carriers (section 3.1) for a 1024-pixel-wide projector, cycles per width.
+THESIS_CARRIERS = (32.0, 64.0, 96.0, 128.0)
+
+
+def gray_encode(n: ArrayLike) -> NDArray[np.int64]:
+    """Binary-reflected Gray code of non-negative integers (table 3.1).
+
+    >>> gray_encode([0, 1, 2, 3, 4, 5, 6, 7]).tolist()
+    [0, 1, 3, 2, 6, 7, 5, 4]
+    """
+    n = np.asarray(n, dtype=np.int64)
+    if np.any(n < 0):
+        raise InputError("Gray code is defined for non-negative integers")
+    return n ^ (n >> 1)
+
+
+def gray_decode(g: ArrayLike) -> NDArray[np.int64]:
+    """Inverse of `gray_encode` (table 3.3's look-up, as a prefix XOR).
+
+    >>> gray_decode([0, 1, 3, 2, 6, 7, 5, 4]).tolist()
+    [0, 1, 2, 3, 4, 5, 6, 7]
+    """
+    n = np.asarray(g, dtype=np.int64).copy()
+    if np.any(n < 0):
+        raise InputError("Gray code is defined for non-negative integers")
+    shift = 1
+    while shift < 63:
+        n ^= n >> shift
+        shift *= 2
+    return n
+
+
+def code_bits(codes: ArrayLike, bits: int) -> NDArray[np.uint8]:
+    """Bits of integer codes, most significant first: ``(..., bits)`` uint8."""
+    codes = np.asarray(codes, dtype=np.int64)
+    shifts = np.arange(bits - 1, -1, -1, dtype=np.int64)
+    return ((codes[..., None] >> shifts) & 1).astype(np.uint8)
+
+
+def bits_to_code(planes: ArrayLike) -> NDArray[np.int64]:
+    """Integer code from bit planes ``(K, ...)``, plane 0 the most significant."""
+    planes = np.asarray(planes).astype(np.int64)
+    weights = (1 << np.arange(planes.shape[0] - 1, -1, -1, dtype=np.int64)).reshape((-1,) + (1,) * (planes.ndim - 1))
+    return np.sum(planes * weights, axis=0)
+
+
+def stripe_codes(spec: PatternSpec) -> NDArray[np.int64]:
+    """Gray code projected on each stripe, ``(S,)``; skips the all-zero code if asked."""
+    return gray_encode(np.arange(spec.stripes) + (1 if spec.skip_zero_code else 0))
+
+
+def code_to_stripe(codes: ArrayLike, spec: PatternSpec) -> NDArray[np.int64]:
+    """Stripe index of decoded Gray codes; -1 where the code is never projected."""
+    stripe = gray_decode(codes) - (1 if spec.skip_zero_code else 0)
+    return np.where((stripe >= 0) & (stripe < spec.stripes), stripe, -1)
+
+
+def stripe_of_line(line: ArrayLike, spec: PatternSpec) -> NDArray[np.int64]:
+    """Stripe index of (fractional) projector lines along the phase direction; -1 outside."""
+    line = np.asarray(line, dtype=np.float64)
+    lines = spec.phase_lines
+    with np.errstate(invalid="ignore"):
+        k = np.floor((line + 0.5) * spec.stripes / lines)
+        ok = np.isfinite(k) & (k >= 0) & (k < spec.stripes)
+    return np.where(ok, np.nan_to_num(k), -1).astype(np.int64)
+
+
+def stripe_center(stripe: ArrayLike, spec: PatternSpec) -> NDArray[np.float64]:
+    """Projector line at the centre of each stripe (NaN for stripe -1), in projector pixels.
+
+    >>> stripe_center([0, 15], PatternSpec()).tolist()
+    [23.5, 743.5]
+    """
+    stripe = np.asarray(stripe)
+    centre = (stripe + 0.5) * spec.phase_lines / spec.stripes - 0.5
+    return np.where(stripe >= 0, centre, np.nan)
+
+
+def bit_planes(spec: PatternSpec) -> NDArray[np.uint8]:
+    """Which bits are on along the phase direction: ``(bits, L)`` uint8, one column per line."""
+    stripe = stripe_of_line(np.arange(spec.phase_lines), spec)
+    return code_bits(stripe_codes(spec)[stripe], spec.bits).T.copy()
+
+
+def carrier_waves(spec: PatternSpec) -> NDArray[np.float64]:
+    """``cos(2 pi f_n x / W)`` for every carrier (bits, then pilot) along the orthogonal direction.
+
+    Returns ``(len(spec.all_carriers), spec.orthogonal_lines)``.
+    """
+    x = np.arange(spec.orthogonal_lines, dtype=np.float64)
+    f = np.asarray(spec.all_carriers, dtype=np.float64)[:, None] / spec.orthogonal_lines
+    return np.cos(2 * np.pi * f * x)
+
+
+def pattern_range(spec: PatternSpec) -> tuple[float, float]:
+    """Smallest and largest value eq. 3.1 can reach before gamma and quantisation."""
+    swing = spec.b_p * float(np.sum(np.abs(spec.all_weights)))
+    if spec.kind == "modified_composite":
+        swing += abs(spec.modified_amplitude)
+    return spec.a_p - swing, spec.a_p + swing
+
+
+def linear_pattern(spec: PatternSpec) -> NDArray[np.float64]:
+    """Eq. 3.1 as linear projector drive, ``(H_p, W_p)`` float64, before gamma and quantisation.
+
+    ``carrier_only`` turns every bit on everywhere (fig. 3.9); ``modified_composite`` adds
+    ``modified_amplitude * sin(2 pi modified_frequency y / L)`` along the phase direction (6.2).
+    """
+    low, high = pattern_range(spec)
+    if low < -1e-9 or high > 1 + 1e-9:
+        raise InputError(
+            f"pattern leaves [0, 1]: a_p +/- b_p*sum(weights) spans [{low:.3f}, {high:.3f}]; "
+            "lower b_p or the weights"
+        )
+    waves = carrier_waves(spec)  # (C, O)
+    weights = np.asarray(spec.all_weights)[:, None]
+    if spec.kind == "carrier_only":
+        on = np.ones((len(spec.all_carriers), spec.phase_lines))
+    else:
+        on = np.vstack([bit_planes(spec), np.ones((len(spec.all_carriers) - spec.bits, spec.phase_lines))])
+    # (L, O): sum over carriers of on[n, line] * w_n * wave[n, x]
+    image = spec.a_p + spec.b_p * (on.T @ (weights * waves))
+    if spec.kind == "modified_composite":
+        line = np.arange(spec.phase_lines, dtype=np.float64)
+        image += spec.modified_amplitude * np.sin(2 * np.pi * spec.modified_frequency * line / spec.phase_lines)[:, None]
+    return image if spec.orientation == "rows" else image.T
+
+
+def render_pattern(spec: PatternSpec) -> NDArray[np.float32]:
+    """The image to project: eq. 3.1, gamma pre-corrected, quantised to 8 bits.
+
+    Returns
+    -------
+    (H_p, W_p) float32 array
+        Values on the 1/255 grid in [0, 1].
+    """
+    drive = np.clip(linear_pattern(spec), 0.0, 1.0) ** (1.0 / spec.gamma)
+    return (to_uint8(drive).astype(np.float32) / np.float32(255)).astype(np.float32)
+
+
+def scale_carriers(carriers: tuple[float, ...], width: int, *, reference_width: int = 1024) -> tuple[float, ...]:
+    """Carriers given per `reference_width` pixels, rescaled to keep their period for `width`.
+
+    >>> scale_carriers((32, 64, 96, 128), 512)
+    (16.0, 32.0, 48.0, 64.0)
+    """
+    return tuple(float(f) * width / reference_width for f in carriers)
+
+
+def thesis_spec(projector_size: tuple[int, int] = (1024, 768), **changes) -> PatternSpec:
+    """The thesis's pattern: 4 bits on carriers 32, 64, 96, 128 per 1024 px, A_p = 0.5."""
+    width = projector_size[0] if changes.get("orientation", "rows") == "rows" else projector_size[1]
+    base = dict(kind="composite", projector_size=tuple(projector_size), bits=4,
+                carriers=scale_carriers(THESIS_CARRIERS, width), weights=(1.0,) * 4, a_p=0.5, b_p=0.125)
+    base.update(changes)
+    return PatternSpec(**base)
+
+
+def spread_carriers(bits: int, width: int, *, highest: float | None = None, pilot: bool = False) -> tuple[float, ...]:
+    """Carriers free of second-order intermodulation: ``k * d`` for ``k = n .. 2n - 1``.
+
+    With the `n` consecutive multiples ``k = n, ..., 2n - 1`` of a spacing `d`, every difference ``f_i - f_j`` lies below the lowest carrier and every sum ``f_i + f_j``
+    (harmonics included) above the highest, so the products that projector gamma creates
+    never land on a carrier (the cause of the thesis's lost lowest carrier, section 3.2.2).
+
+    Parameters
+    ----------
+    bits : int
+        Number of bit carriers; one more is planned when `pilot` is true (the pilot is last).
+    width : int
+        Projector pixels along the orthogonal direction.
+    highest : float, optional
+        Highest carrier in cycles per width; default ``width / 8`` (an 8 px period, the
+        thesis's highest carrier).
+
+    Returns
+    -------
+    tuple of float
+        Carrier frequencies in cycles per width, lowest first.
+
+    >>> [round(f, 2) for f in spread_carriers(4, 1024)]
+    [73.14, 91.43, 109.71, 128.0]
+    """
+    n = bits + (1 if pilot else 0)
+    top = width / 8 if highest is None else highest
+    d = top / (2 * n - 1)
+    return tuple(k * d for k in range(n, 2 * n))
+
+
+def default_spec(projector_size: tuple[int, int] = (1024, 768), **changes) -> PatternSpec:
+    """The best single-shot composite pattern sliscan knows for this projector.
+
+    4 Gray code bits that never use the all-zero code, plus a pilot carrier that is on
+    everywhere the projector lights (it tells a lit stripe from shadow and normalises every
+    bit), on intermodulation-free carriers (see `spread_carriers`).
+    """
+    orientation = changes.get("orientation", "rows")
+    width = projector_size[0] if orientation == "rows" else projector_size[1]
+    bits = int(changes.pop("bits", 4))
+    carriers = spread_carriers(bits, width, pilot=True)
+    base = dict(kind="composite", projector_size=tuple(projector_size), bits=bits, carriers=carriers[:-1],
+                weights=(1.0,) * bits, pilot=carriers[-1], pilot_weight=1.0, skip_zero_code=True,
+                a_p=0.5, b_p=0.5 / (bits + 1))
+    base.update(changes)
+    return PatternSpec(**base)
+
+
+def save_pattern(path: str | os.PathLike, spec: PatternSpec) -> tuple[Path, Path]:
+    """Write the pattern image (8-bit PNG/BMP) and its PatternSpec JSON beside it.
+
+    ``cp.png`` gets ``cp.json``; the JSON's ``image`` key names the image file.  Both are
+    written atomically.  Returns ``(image_path, json_path)``.
+    """
+    import cv2
+
+    image_path = Path(path)
+    json_path = image_path.with_suffix(".json")
+    if image_path.suffix.lower() == ".json":
+        raise InputError(f"{image_path}: give the image file name (e.g. cp.png); the JSON goes beside it")
+    spec = spec.with_(image=image_path.name)
+    image = to_uint8(render_pattern(spec))
+    with atomic_path(image_path) as tmp:
+        if not cv2.imwrite(str(tmp), image):
+            raise InputError(f"{image_path}: cannot write an image with this file extension")
+    spec.save(json_path)
+    return image_path, json_path
