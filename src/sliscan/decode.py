@@ -117,7 +117,7 @@ def _zero_code_pixels(lit: NDArray[np.bool_], demod: Demodulated, ratio: float, 
 
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | None = None,
-           min_confidence: float = 0.1, max_residual: float = 0.6, zero_code_dc: float = 0.55,
+           min_confidence: float = 0.1, max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.55,
            window: int = 64) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
@@ -134,6 +134,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
         Pixels whose weakest bit margin is below this are invalid.
     max_residual : float
         Pixels whose window the carrier model explains worse than this are invalid.
+    max_misfit : float
+        Pixels whose own neighbourhood the window's model mispredicts by more than this
+        fraction of the DC are invalid (see `Demodulated.misfit`).
     zero_code_dc : float
         For patterns that project the all-zero code: DC ratio to the surrounding lit pixels
         above which an unmodulated pixel is the lit zero stripe (see module docstring).
@@ -161,6 +164,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
     stripe = code_to_stripe(bits_to_code(on_bits), spec)
     confidence = np.clip(2 * np.abs(levels - 0.5).min(axis=0), 0, 1).astype(np.float32)
     valid = lit & (stripe >= 0) & (confidence >= min_confidence) & (demod.residual <= max_residual)
+    if demod.misfit is not None:
+        valid &= demod.misfit <= max_misfit
     stripe = np.where(valid, stripe, -1).astype(np.int16)
     proj_map = stripe_center(stripe, spec).astype(np.float32)
     return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit,

@@ -66,11 +66,17 @@ class Demodulated:
     residual : (H, W) float32 array
         Fraction of the window's AC energy that the carrier model leaves unexplained, in
         [0, 1]: high at edges, in shadow and where the signal is noise.
+    misfit : (H, W) float32 array or None
+        How badly the window's fitted model predicts the pixel's own neighbourhood (the mean
+        over the shortest carrier period around it), relative to the window's DC.  A pixel in
+        a shadow or on a surface narrower than the window, whose every window reaches light
+        from elsewhere, has a large misfit.  None for demodulators that do not compute it.
     """
 
     amplitude: NDArray[np.float32]
     dc: NDArray[np.float32]
     residual: NDArray[np.float32]
+    misfit: NDArray[np.float32] | None = None
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -178,6 +184,8 @@ class _WindowTables:
     phasors: NDArray[np.complex128]  # (C, W)
     g: NDArray[np.complex128]  # (C, W)
     h: NDArray[np.complex128]  # (C, W)
+    near: NDArray[np.complex128]  # (C, W): mean of exp(+i w_n x) over the short window at x
+    short: int
     t2: float
     window: int
 
@@ -191,7 +199,24 @@ class _WindowTables:
         g = np.stack([np.correlate(ph, np.ones(window) / window, mode="valid") for ph in phasors])
         h = np.stack([np.correlate(ph, t / window, mode="valid") for ph in phasors])
         pad = ((0, 0), (0, window - 1))
-        return cls(phasors, np.pad(g, pad), np.pad(h, pad), float(np.mean(t * t)), window)
+        short = _short_window(carriers)
+        near = np.stack([_box_mean_1d(np.conj(ph), short) for ph in phasors])
+        return cls(phasors, np.pad(g, pad), np.pad(h, pad), near, short, float(np.mean(t * t)), window)
+
+
+def _short_window(carriers: Carriers) -> int:
+    """One period of the highest carrier, in camera pixels (at least 3)."""
+    return max(3, int(round(1.0 / float(carriers.frequencies.max()))))
+
+
+def _box_mean_1d(values: NDArray, length: int) -> NDArray:
+    """Centred running mean along the last axis, shifted inside the line at its ends."""
+    width = values.shape[-1]
+    cum = np.zeros(values.shape[:-1] + (width + 1,), dtype=values.dtype)
+    np.cumsum(values, axis=-1, out=cum[..., 1:])
+    start = np.clip(np.arange(width) - length // 2, 0, max(width - length, 0))
+    end = np.minimum(start + length, width)
+    return (cum[..., end] - cum[..., start]) / (end - start)
 
 
 def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
@@ -203,7 +228,8 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
     The coupling terms are known per window start (`_WindowTables`), so the normal equations
     are solved by a few fixed-point sweeps, all element-wise.
 
-    Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...))``.
+    Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...), prediction)``,
+    where `prediction` is the fitted model's mean over the short window around each pixel.
     """
     cum_i, cum_i2, cum_xi, cum_q = cums
     win = tables.window
@@ -221,7 +247,9 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
     var = np.maximum(_running_mean(cum_i2, start, end, win) - m0 * m0, 0)
     amp = 2 * np.abs(c)
     explained = slope * slope * tables.t2 + 0.5 * np.sum(amp * amp, axis=0)
-    return np.maximum(var - explained, 0), var, d, amp
+    x = np.arange(start.size)
+    prediction = d + slope * (x - centre) + 2 * np.sum((c * tables.near[:, None, :]).real, axis=0)
+    return np.maximum(var - explained, 0), var, d, amp, prediction
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
@@ -261,6 +289,7 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
     dc = np.empty((h, w), dtype=np.float32)
     residual = np.empty((h, w), dtype=np.float32)
+    misfit = np.empty((h, w), dtype=np.float32)
     for r0 in range(0, h, chunk_lines):
         block = img[r0 : r0 + chunk_lines].astype(np.float64)
         cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
@@ -271,11 +300,14 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
             fit = _fit_windows(cums, start, tables)
             better = (fit[0] < best[0]) & (fit[0] < 0.5 * centre_unexplained)
             for i, new in enumerate(fit):
-                best[i] = np.where(better if i < 3 else better[None], new, best[i])
-        amp[:, r0 : r0 + chunk_lines] = best[3]
-        dc[r0 : r0 + chunk_lines] = best[2]
-        residual[r0 : r0 + chunk_lines] = best[0] / np.maximum(best[1], 1e-12)
-    return Demodulated(amplitude=amp, dc=dc, residual=residual)
+                best[i] = np.where(better[None] if new.ndim == 3 else better, new, best[i])
+        unexplained, var, mean, a, prediction = best
+        observed = _box_mean_1d(block, tables.short)
+        amp[:, r0 : r0 + chunk_lines] = a
+        dc[r0 : r0 + chunk_lines] = mean
+        residual[r0 : r0 + chunk_lines] = unexplained / np.maximum(var, 1e-12)
+        misfit[r0 : r0 + chunk_lines] = np.abs(observed - prediction) / np.maximum(mean, 1e-6)
+    return Demodulated(amplitude=amp, dc=dc, residual=residual, misfit=misfit)
 
 
 def butterworth_bandpass(freqs: NDArray[np.float64], centre: float, half_width: float, order: int) -> NDArray[np.float64]:
@@ -372,5 +404,6 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     out = run(view, found)
     if spec.orientation == "columns":
         out = Demodulated(np.ascontiguousarray(out.amplitude.transpose(0, 2, 1)),
-                          np.ascontiguousarray(out.dc.T), np.ascontiguousarray(out.residual.T))
+                          np.ascontiguousarray(out.dc.T), np.ascontiguousarray(out.residual.T),
+                          None if out.misfit is None else np.ascontiguousarray(out.misfit.T))
     return out, found

@@ -1,0 +1,98 @@
+"""A whole `ScanResult` in one compressed ``.npz`` file.
+
+Every array field is stored under its own name (``points``, ``valid``, ``texture``,
+``proj_map``, ``stripe``, ``confidence``) and ``timings`` as a JSON string, so the file opens
+with plain ``np.load`` (no pickle).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from sliscan._validate import InputError, atomic_path
+from sliscan.types import ScanResult
+
+#: Array fields of ScanResult and the dtype each is stored and read back with.
+ARRAY_DTYPES = {
+    "points": np.float32,
+    "valid": np.bool_,
+    "texture": np.float32,
+    "proj_map": np.float32,
+    "stripe": np.int16,
+    "confidence": np.float32,
+}
+
+
+def write_scan_npz(path: str | os.PathLike, result: ScanResult) -> Path:
+    """Write every array of `result`, and its timings as JSON, to a compressed npz, atomically.
+
+    Parameters
+    ----------
+    path : path
+        Destination, written as given (no ``.npz`` is appended); missing folders are created.
+    result : ScanResult
+
+    Returns
+    -------
+    path : Path
+        The file written.
+    """
+    arrays = {name: np.asarray(getattr(result, name), dtype=dtype) for name, dtype in ARRAY_DTYPES.items()}
+    timings = json.dumps({str(k): float(v) for k, v in result.timings.items()})
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, timings=np.array(timings), **arrays)
+    return Path(path)
+
+
+def read_scan_npz(path: str | os.PathLike) -> ScanResult:
+    """Read a `ScanResult` written by `write_scan_npz`.
+
+    Parameters
+    ----------
+    path : path
+        An npz file with the arrays of a ScanResult and a ``timings`` JSON string.
+
+    Returns
+    -------
+    result : ScanResult
+
+    Raises
+    ------
+    InputError
+        If the file cannot be read, is not an npz, lacks an array, or its shapes disagree;
+        the message names the file.
+    """
+    p = Path(path)
+    try:
+        f = open(p, "rb")
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    with f:
+        try:
+            loaded = np.load(f, allow_pickle=False)
+        except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise InputError(f"{p}: not a valid npz file ({exc})") from None
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise InputError(f"{p}: not an npz archive (a single .npy array)")
+        with loaded:
+            missing = sorted((set(ARRAY_DTYPES) | {"timings"}) - set(loaded.files))
+            if missing:
+                raise InputError(f"{p}: not a sliscan scan: missing arrays {missing}")
+            try:
+                arrays = {name: loaded[name].astype(dtype) for name, dtype in ARRAY_DTYPES.items()}
+                timings = json.loads(str(loaded["timings"]))
+            except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+                raise InputError(f"{p}: corrupt npz file ({exc})") from None
+    if not isinstance(timings, dict):
+        raise InputError(f"{p}: timings must be a JSON object")
+    shape = arrays["valid"].shape
+    for name, arr in arrays.items():
+        want = (*shape, 3) if name == "points" else shape
+        if arr.shape != want or len(shape) != 2:
+            raise InputError(f"{p}: {name} has shape {arr.shape}, expected {want} (H, W)")
+    return ScanResult(timings=timings, **arrays)

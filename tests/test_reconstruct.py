@@ -1,0 +1,194 @@
+"""Triangulation (thesis eqs. 4.13-4.22): project world points exactly, triangulate them back."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_calibrate import WORKING_DISTANCE_MM, make_rig
+
+from sliscan import Calibration, Device, InputError
+from sliscan.reconstruct import triangulate, triangulate_points
+
+# The projector sits 200 mm above the camera for rows (vertical baseline, the thesis's rig) and
+# 200 mm to its right for columns (horizontal baseline): each orientation needs its baseline
+# across the coded projector lines.
+BASELINES = {"rows": (0.0, -200.0, 0.0), "columns": (200.0, 0.0, 0.0)}
+CODED = {"rows": 1, "columns": 0}  # which projector pixel coordinate the map holds
+
+# float32 output: at ~1 m its spacing is 6e-5 mm, so 1e-3 mm (1e-6 of the working distance)
+# bounds rounding with a wide margin; the float64 solve itself contributes < 1e-9 mm.
+ATOL_FLOAT32_MM = 1e-3
+# float64 output (triangulate_points): observed errors are ~1e-12 mm.
+ATOL_FLOAT64_MM = 1e-7
+
+
+def rig(orientation: str) -> Calibration:
+    camera, projector = make_rig(BASELINES[orientation])
+    return Calibration(camera, projector)
+
+
+def sphere_scene(calibration: Calibration, *, centre=(0.0, 0.0, WORKING_DISTANCE_MM), radius=150.0):
+    """World point seen by every camera pixel (NaN where the ray misses the sphere)."""
+    k = calibration.camera.intrinsics
+    h, w = calibration.camera.shape
+    yc, xc = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays = np.stack([xc, yc, np.ones_like(xc)], axis=-1) @ np.linalg.inv(k).T
+    centre = np.asarray(centre)
+    # |t ray - centre|^2 = radius^2, nearest root.
+    a = np.einsum("...i,...i", rays, rays)
+    b = -2 * rays @ centre
+    c = centre @ centre - radius**2
+    disc = b**2 - 4 * a * c
+    with np.errstate(invalid="ignore"):
+        t = (-b - np.sqrt(disc)) / (2 * a)
+    return rays * t[..., None]
+
+
+def coded_map(calibration: Calibration, xyz_w: np.ndarray, orientation: str) -> np.ndarray:
+    return calibration.projector.project(xyz_w)[..., CODED[orientation]]
+
+
+@pytest.mark.parametrize("orientation", ["rows", "columns"])
+def test_sphere_round_trip(orientation):
+    calibration = rig(orientation)
+    truth = sphere_scene(calibration)
+    hit = np.isfinite(truth[..., 0])
+    assert 0.2 < hit.mean() < 0.9  # the sphere fills part of the view
+    xyz_w = triangulate(coded_map(calibration, truth, orientation), calibration, orientation=orientation)
+    assert xyz_w.dtype == np.float32 and xyz_w.shape == (480, 640, 3)
+    np.testing.assert_array_equal(np.isfinite(xyz_w[..., 0]), hit)
+    np.testing.assert_allclose(xyz_w[hit], truth[hit], rtol=0, atol=ATOL_FLOAT32_MM)
+
+
+def test_plane_round_trip_with_valid_mask_and_chunks(rng):
+    calibration = rig("rows")
+    truth = sphere_scene(calibration, radius=1e7, centre=(0.0, 0.0, 1e7 + 900.0))  # ~ the plane Z = 900
+    proj_map = coded_map(calibration, truth, "rows").astype(np.float32)
+    valid = rng.random(proj_map.shape) < 0.7
+    full = triangulate(proj_map, calibration, valid=valid)
+    assert np.all(np.isnan(full[~valid]))
+    # float32 input: yp is rounded to ~1e-5 px, i.e. ~1e-4 mm in depth at this geometry.
+    np.testing.assert_allclose(full[valid], truth[valid], rtol=0, atol=0.01)
+    for chunk_rows in (1, 37, 10_000):
+        np.testing.assert_array_equal(triangulate(proj_map, calibration, valid=valid, chunk_rows=chunk_rows), full)
+
+
+def test_triangulate_does_not_modify_its_input():
+    calibration = rig("rows")
+    proj_map = coded_map(calibration, sphere_scene(calibration), "rows")
+    before = proj_map.copy()
+    triangulate(proj_map, calibration)
+    np.testing.assert_array_equal(proj_map, before)
+
+
+def test_integer_map_and_empty_map():
+    calibration = rig("rows")
+    xyz_w = triangulate(np.full((480, 640), 96, dtype=np.int16), calibration)
+    assert np.all(np.isfinite(xyz_w))
+    assert np.all(np.isnan(triangulate(np.full((480, 640), np.nan), calibration)))
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=st.floats(-150, 150), y=st.floats(-100, 100), z=st.floats(500, 1200),
+       orientation=st.sampled_from(["rows", "columns"]))
+def test_project_then_triangulate_returns_the_point(x, y, z, orientation):
+    calibration = rig(orientation)
+    point = np.array([[x, y, z]])
+    xc, yc = calibration.camera.project(point).T
+    got = triangulate_points(xc, yc, coded_map(calibration, point, orientation), calibration,
+                             orientation=orientation)
+    np.testing.assert_allclose(got, point, rtol=0, atol=ATOL_FLOAT64_MM)
+
+
+def test_scattered_points_match_the_grid():
+    calibration = rig("rows")
+    proj_map = coded_map(calibration, sphere_scene(calibration), "rows")
+    rows, cols = np.nonzero(np.isfinite(proj_map))
+    points = triangulate_points(cols, rows, proj_map[rows, cols], calibration)
+    assert points.dtype == np.float64
+    np.testing.assert_array_equal(points.astype(np.float32), triangulate(proj_map, calibration)[rows, cols])
+
+
+def test_nan_and_ill_conditioned_points_are_nan():
+    calibration = rig("rows")
+    got = triangulate_points([319.5, 100.0], [239.5, 100.0], [np.nan, 90.0], calibration)
+    assert np.all(np.isnan(got[0])) and np.all(np.isfinite(got[1]))
+    # Vertical baseline, columns coded: the projector's centre column is the plane X = 0, which
+    # holds the camera centre, so the camera's centre-column rays lie in it (det C = 0).
+    got = triangulate_points([319.5], [239.5], [127.5], calibration, orientation="columns")
+    assert np.all(np.isnan(got))
+
+
+def test_camera_distortion_is_undistorted(rng):
+    camera, projector = make_rig()
+    dist = np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0])
+    k = camera.intrinsics
+    calibration = Calibration(Device(camera.matrix, camera.size, intrinsics=k, distortion=dist), projector)
+    world = rng.uniform([-150, -100, 700], [150, 100, 900], size=(100, 3))
+    observed, _ = cv2.projectPoints(world, np.zeros(3), np.zeros(3), k, dist)
+    xc, yc = observed[:, 0].T
+    yp = projector.project(world)[:, 1]
+    got = triangulate_points(xc, yc, yp, calibration)
+    # Iterative undistortion stops at 1e-10 px; 1e-6 mm is far above that mapped to depth.
+    np.testing.assert_allclose(got, world, rtol=0, atol=1e-6)
+    ignoring = triangulate_points(xc, yc, yp, Calibration(camera, projector))
+    assert np.abs(ignoring - world).max() > 1.0  # the distortion matters at this strength
+    # The grid path undistorts the same way.
+    proj_map = np.full(camera.shape, np.nan)
+    proj_map[::50, ::50] = 90.0
+    rows, cols = np.nonzero(np.isfinite(proj_map))
+    np.testing.assert_array_equal(triangulate(proj_map, calibration)[rows, cols],
+                                  triangulate_points(cols, rows, proj_map[rows, cols], calibration).astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------- errors
+
+def test_shape_errors():
+    calibration = rig("rows")
+    with pytest.raises(InputError, match=r"^proj_map must have shape \(480, 640\) \(H, W\), got \(640, 480\)$"):
+        triangulate(np.zeros((640, 480)), calibration)
+    with pytest.raises(InputError, match=r"valid must be a bool array of shape \(480, 640\)"):
+        triangulate(np.zeros((480, 640)), calibration, valid=np.ones((480, 640), dtype=np.uint8))
+    with pytest.raises(InputError, match="xc, yc and proj must be 1-D arrays of one length"):
+        triangulate_points([1.0, 2.0], [1.0], [1.0, 2.0], calibration)
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    (np.inf, r"proj_map has infinite values \(use NaN for undecoded pixels\)"),
+    (True, "proj_map must be a real-valued"),
+])
+def test_bad_map_values(value, message):
+    proj_map = np.zeros((480, 640), dtype=type(value))
+    proj_map[5, 5] = value
+    with pytest.raises(InputError, match=message):
+        triangulate(proj_map, rig("rows"))
+
+
+def test_bad_options():
+    calibration = rig("rows")
+    proj_map = np.zeros((480, 640))
+    with pytest.raises(InputError, match="orientation must be one of"):
+        triangulate(proj_map, calibration, orientation="diagonal")
+    with pytest.raises(InputError, match="chunk_rows must be a positive integer, got 0"):
+        triangulate(proj_map, calibration, chunk_rows=0)
+    with pytest.raises(InputError, match="xc and yc must be finite"):
+        triangulate_points([np.nan], [1.0], [1.0], calibration)
+
+
+def test_unsupported_distortion():
+    camera, projector = make_rig()
+    distorted = Device(projector.matrix, projector.size, intrinsics=projector.intrinsics,
+                       distortion=[0.1, 0, 0, 0, 0])
+    with pytest.raises(InputError, match="projector lens distortion is not supported yet"):
+        triangulate(np.zeros(camera.shape), Calibration(camera, distorted))
+    no_k = Device(camera.matrix, camera.size, distortion=[0.1, 0, 0, 0, 0])
+    with pytest.raises(InputError, match="camera has lens distortion but no intrinsics"):
+        triangulate_points([1.0], [1.0], [1.0], Calibration(no_k, projector))
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(4_13_22)
