@@ -163,7 +163,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
     on_bits = levels >= 0.5
     stripe = code_to_stripe(bits_to_code(on_bits), spec)
     confidence = np.clip(2 * np.abs(levels - 0.5).min(axis=0), 0, 1).astype(np.float32)
-    valid = lit & (stripe >= 0) & (confidence >= min_confidence) & (demod.residual <= max_residual)
+    # The residual is relative to the AC energy, which the lit all-zero stripe does not have.
+    modelled = (demod.residual <= max_residual) | ~on_bits.any(axis=0)
+    valid = lit & (stripe >= 0) & (confidence >= min_confidence) & modelled
     if demod.misfit is not None:
         valid &= demod.misfit <= max_misfit
     stripe = np.where(valid, stripe, -1).astype(np.int16)

@@ -22,7 +22,7 @@ Frequencies are in cycles per camera pixel along the carrier direction (camera `
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,11 +45,24 @@ class Carriers:
         f_proj / W_p``).
     window : int
         Demodulation window, camera pixels: one period of the carriers' common spacing.
+    line_scale : (H,) float64 array or None
+        The scale of each line (row for the ``rows`` orientation): a projector pitched toward
+        the camera's axis magnifies its pattern differently at the top and the bottom of the
+        frame (a few per cent), enough to drift a carrier's phase by a fair part of a cycle
+        across the window.  None: `scale` everywhere.
     """
 
     frequencies: NDArray[np.float64]
     scale: float
     window: int
+    line_scale: NDArray[np.float64] | None = field(default=None, repr=False)
+
+    def line_frequencies(self, lines: slice | NDArray[np.intp]) -> NDArray[np.float64]:
+        """Carrier frequencies of the given lines, ``(n_lines, C)`` cycles per camera pixel."""
+        if self.line_scale is None:
+            n = len(range(*lines.indices(10**9))) if isinstance(lines, slice) else len(lines)
+            return np.broadcast_to(self.frequencies, (n, self.frequencies.size))
+        return self.line_scale[lines, None] * (self.frequencies / self.scale)[None, :]
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,8 +126,9 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
     """Find the carriers of `spec` in a capture (thesis 3.3): detect, don't assume.
 
     Perspective scales every carrier by the same factor, so the search is over one scale:
-    the one whose carriers all sit on spectral peaks (sum of log powers), then refined by a
-    parabolic fit on each peak and a least-squares common scale.
+    the one whose carriers all sit on spectral peaks (log power on each carrier against half
+    a spacing beside it, summed), then refined by a parabolic fit on each peak and a
+    least-squares common scale.
 
     Raises
     ------
@@ -131,9 +145,12 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
     if s_lo >= s_hi:
         raise InputError(f"capture is {width} px along the carriers: too short to resolve them")
     scales = np.exp(np.arange(np.log(s_lo), np.log(s_hi), 0.5 / (width * proj.max())))
-    bins = scales[:, None] * proj[None, :] * width  # fractional rfft bins
-    score = np.interp(bins, np.arange(freqs.size), logp).sum(axis=1)
-    scale = float(scales[np.argmax(score)])
+    # Score: log power on the carriers minus log power half a spacing beside them, so a
+    # scale that puts the carriers on peaks beats one that merely sits on a bright region.
+    offset = 0.5 * _common_spacing(proj)
+    at = np.interp(scales[:, None] * proj[None, :] * width, np.arange(freqs.size), logp)
+    beside = np.interp(scales[:, None] * (proj[None, :] + offset) * width, np.arange(freqs.size), logp)
+    scale = float(scales[np.argmax((at - beside).sum(axis=1))])
 
     gap = _common_spacing(proj) * scale * width  # in bins
     refined = np.empty_like(proj)
@@ -150,7 +167,40 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
     window = int(round(1.0 / (_common_spacing(proj) * scale)))
     if window > width:
         raise InputError(f"capture is {width} px along the carriers, shorter than one carrier spacing ({window} px)")
-    return Carriers(frequencies=proj * scale, scale=scale, window=window)
+    return Carriers(frequencies=proj * scale, scale=scale, window=window, line_scale=_line_scales(img, proj, scale))
+
+
+def _line_scales(img: NDArray[np.float32], proj: NDArray[np.float64], scale: float, *,
+                 band: int = 48, span: float = 0.08) -> NDArray[np.float64]:
+    """Scale per line: refined in bands of lines, then a weighted quadratic fit over lines.
+
+    In each band the scale within `span` of the global one that puts the most power on the
+    carriers wins (parabolic refinement); bands are weighted by that power, so dark bands
+    (shadow, background beyond the projector) barely count.
+    """
+    h, width = img.shape
+    centres, best, weights = [], [], []
+    trial = scale * np.exp(np.linspace(-span, span, 161))
+    for r0 in range(0, h - band // 2, band):
+        freqs, power = line_spectrum(img[r0 : r0 + band], max_lines=16)
+        on = np.interp(trial[:, None] * proj[None, :] * width, np.arange(freqs.size), power).sum(axis=1)
+        k = int(np.clip(np.argmax(on), 1, trial.size - 2))
+        a, c, e = on[k - 1], on[k], on[k + 1]
+        den = a - 2 * c + e
+        step = 0.5 * (a - e) / den if den < 0 else 0.0
+        centres.append(r0 + min(band, h - r0) / 2)
+        best.append(np.log(trial[k]) + step * (np.log(trial[1]) - np.log(trial[0])))
+        weights.append(c)
+    if len(best) < 4:
+        return np.full(h, scale)
+    x = np.asarray(centres) / h
+    y, w = np.asarray(best), np.sqrt(np.asarray(weights))
+    coef = np.polyfit(x, y, 2, w=w)
+    keep = np.abs(np.polyval(coef, x) - y) < 0.02
+    if keep.sum() >= 4:
+        coef = np.polyfit(x[keep], y[keep], 2, w=w[keep])
+    fitted = np.exp(np.polyval(coef, np.arange(h) / h))
+    return np.clip(fitted, scale * np.exp(-span), scale * np.exp(span))
 
 
 def _window_bounds(width: int, window: int, placement: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -174,34 +224,37 @@ def _cumsum0(values: NDArray) -> NDArray:
 
 @dataclass(frozen=True, eq=False)
 class _WindowTables:
-    """Per-window-start constants of the local least-squares fit (see `_fit_windows`).
+    """Per-line, per-window-start constants of the local least-squares fit (`_fit_windows`).
 
-    For carrier n and a window starting at s, with ``t`` the offset from the window's
-    centre: ``g[n, s]`` = mean of ``exp(-i w_n x)``, ``h[n, s]`` = mean of
-    ``t exp(-i w_n x)``; ``t2`` = mean of ``t**2``.
+    For carrier n of line r and a window of length L starting at s, with ``t`` the offset
+    from the window's centre: ``g[n, r, s]`` = mean of ``exp(-i w_rn x)`` and ``h[n, r, s]``
+    = mean of ``t exp(-i w_rn x)`` over the window (closed forms: a geometric series times
+    ``exp(-i w s)``); ``near[n, r, x]`` = mean of ``exp(+i w_rn x)`` over the short window
+    around x; ``t2`` = mean of ``t**2``.
     """
 
-    phasors: NDArray[np.complex128]  # (C, W)
-    g: NDArray[np.complex128]  # (C, W)
-    h: NDArray[np.complex128]  # (C, W)
-    near: NDArray[np.complex128]  # (C, W): mean of exp(+i w_n x) over the short window at x
-    short: int
+    phasors: NDArray[np.complex128]  # (C, lines, W)
+    g: NDArray[np.complex128]  # (C, lines, W)
+    h: NDArray[np.complex128]  # (C, lines, W)
+    near: NDArray[np.complex128]  # (C, lines, W)
     t2: float
     window: int
+    short: int
 
     @classmethod
-    def build(cls, width: int, carriers: Carriers) -> _WindowTables:
-        window = carriers.window
+    def build(cls, width: int, freqs: NDArray[np.float64], window: int, short: int) -> _WindowTables:
+        """`freqs` is ``(lines, C)`` in cycles per pixel."""
+        omega = 2 * np.pi * freqs.T[:, :, None]  # (C, lines, 1)
         x = np.arange(width, dtype=np.float64)
-        phasors = np.exp(-2j * np.pi * carriers.frequencies[:, None] * x[None, :])
-        t = np.arange(window) - (window - 1) / 2
-        # correlate (not convolve): g[n, s] = mean_j ph[n, s + j] * kernel[j]
-        g = np.stack([np.correlate(ph, np.ones(window) / window, mode="valid") for ph in phasors])
-        h = np.stack([np.correlate(ph, t / window, mode="valid") for ph in phasors])
-        pad = ((0, 0), (0, window - 1))
-        short = _short_window(carriers)
-        near = np.stack([_box_mean_1d(np.conj(ph), short) for ph in phasors])
-        return cls(phasors, np.pad(g, pad), np.pad(h, pad), near, short, float(np.mean(t * t)), window)
+        phasors = np.exp(-1j * omega * x)
+        j = np.arange(window, dtype=np.float64)
+        t = j - (window - 1) / 2
+        series = np.exp(-1j * omega * j)  # (C, lines, L)
+        g = phasors * series.mean(axis=-1, keepdims=True)
+        h = phasors * (series * t).mean(axis=-1, keepdims=True)
+        near_start = np.clip(x - short // 2, 0, max(width - short, 0))
+        near = np.exp(1j * omega * near_start) * np.exp(1j * omega * np.arange(short)).mean(axis=-1, keepdims=True)
+        return cls(phasors, g, h, near, float(np.mean(t * t)), window, short)
 
 
 def _short_window(carriers: Carriers) -> int:
@@ -220,7 +273,7 @@ def _box_mean_1d(values: NDArray, length: int) -> NDArray:
 
 
 def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
-                 iterations: int = 2) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+                 iterations: int = 3) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Least-squares fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` in each window.
 
     Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
@@ -238,7 +291,7 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
     m0 = _running_mean(cum_i, start, end, win)
     m1 = _running_mean(cum_xi, start, end, win) - centre * m0
     q = np.stack([_running_mean(cq, start, end, win) for cq in cum_q])  # (C, lines, W)
-    g, h = tables.g[:, start][:, None, :], tables.h[:, start][:, None, :]
+    g, h = tables.g[:, :, start], tables.h[:, :, start]
     c = q
     for _ in range(iterations):
         d = m0 - 2 * np.sum((c * np.conj(g)).real, axis=0)
@@ -246,9 +299,11 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
         c = q - d * g - slope * h
     var = np.maximum(_running_mean(cum_i2, start, end, win) - m0 * m0, 0)
     amp = 2 * np.abs(c)
-    explained = slope * slope * tables.t2 + 0.5 * np.sum(amp * amp, axis=0)
+    # <I, model> - DC^2: the fitted model's share of the window's AC energy (exact at the
+    # least-squares optimum, and never counts the overlap of non-orthogonal terms twice).
+    explained = d * m0 - m0 * m0 + slope * m1 + 2 * np.sum((np.conj(c) * q).real, axis=0)
     x = np.arange(start.size)
-    prediction = d + slope * (x - centre) + 2 * np.sum((c * tables.near[:, None, :]).real, axis=0)
+    prediction = d + slope * (x - centre) + 2 * np.sum((c * tables.near).real, axis=0)
     return np.maximum(var - explained, 0), var, d, amp, prediction
 
 
@@ -283,7 +338,7 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     """
     img = check_image("capture", image)
     h, w = img.shape
-    tables = _WindowTables.build(w, carriers)
+    short = _short_window(carriers)
     starts = [_window_bounds(w, carriers.window, p)[0] for p in ((0, -1, 1) if adaptive else (0,))]
     x = np.arange(w, dtype=np.float64)
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
@@ -292,6 +347,8 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     misfit = np.empty((h, w), dtype=np.float32)
     for r0 in range(0, h, chunk_lines):
         block = img[r0 : r0 + chunk_lines].astype(np.float64)
+        lines = slice(r0, r0 + block.shape[0])
+        tables = _WindowTables.build(w, carriers.line_frequencies(lines), carriers.window, short)
         cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
                 [_cumsum0(block * ph) for ph in tables.phasors])
         best = list(_fit_windows(cums, starts[0], tables))
@@ -302,7 +359,7 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
             for i, new in enumerate(fit):
                 best[i] = np.where(better[None] if new.ndim == 3 else better, new, best[i])
         unexplained, var, mean, a, prediction = best
-        observed = _box_mean_1d(block, tables.short)
+        observed = _box_mean_1d(block, short)
         amp[:, r0 : r0 + chunk_lines] = a
         dc[r0 : r0 + chunk_lines] = mean
         residual[r0 : r0 + chunk_lines] = unexplained / np.maximum(var, 1e-12)

@@ -1,0 +1,94 @@
+"""Accuracy of single-shot composite-pattern scanning on the virtual rig.
+
+For every pattern (the thesis's 4-bit pattern, sliscan's default, 6 and 8 bits), decoder
+(sliscan's window demodulator; the thesis's Butterworth band-pass) and scene (sphere, steps,
+tilted plane) under realistic conditions (smooth albedo 0.15-1.0 or a sharp checker 0.25/0.9,
+ambient 10 %, uncorrected projector gamma 2.2, projector and camera blur 1 px, shot and read
+noise, 8 bits), render a capture, scan it and compare with the ground truth
+(`sliscan.evaluate`).  Prints a table and writes it as JSON.
+
+    python benchmarks/accuracy.py                       # thesis sizes: 2592x1944 camera
+    python benchmarks/accuracy.py --camera 1296x972 --seeds 1 --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from sliscan import patterns, simulate
+from sliscan.evaluate import accuracy
+from sliscan.pipeline import Scanner
+
+SCENES = {
+    "sphere": simulate.sphere_scene,
+    "steps": simulate.steps_scene,
+    "tilted": simulate.tilted_plane_scene,
+}
+
+
+def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns.PatternSpec]:
+    """The patterns compared: the thesis's, sliscan's default, and more bits."""
+    width = projector[0]
+    specs = {"thesis 4-bit": patterns.thesis_spec(projector), "sliscan 4-bit": patterns.default_spec(projector)}
+    if not quick:
+        for bits in (6, 8):
+            carriers = patterns.spread_carriers(bits, width, highest=width / 6)
+            specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
+                projector_size=projector, bits=bits, carriers=carriers, weights=(1.0,) * bits,
+                a_p=0.5, b_p=0.5 / bits)
+    return specs
+
+
+def conditions(albedo: str, seed: int) -> simulate.Conditions:
+    """Realistic capture conditions of issue 2 with a smooth or a checker albedo."""
+    texture = (simulate.SmoothAlbedo(low=0.15, high=1.0, seed=seed) if albedo == "smooth"
+               else simulate.CheckerAlbedo(square_mm=40, low=0.25, high=0.9))
+    return simulate.Conditions(albedo=texture, ambient=0.1, projector_gamma=2.2, projector_blur_px=1.0,
+                               camera_blur_px=1.0, seed=seed)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--camera", default="2592x1944")
+    parser.add_argument("--projector", default="1024x768")
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--quick", action="store_true", help="only the 4-bit patterns")
+    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--albedo", default="smooth,checker")
+    parser.add_argument("--methods", default="window,bandpass")
+    parser.add_argument("--json", default="benchmarks/accuracy.json")
+    args = parser.parse_args()
+    camera = tuple(int(v) for v in args.camera.split("x"))
+    projector = tuple(int(v) for v in args.projector.split("x"))
+    rig = simulate.virtual_rig(camera_size=camera, projector_size=projector)
+    rows = []
+    header = (f"{'pattern':22s} {'decoder':9s} {'scene':7s} {'albedo':8s} {'seed':>4s} {'stripe%':>8s} "
+              f"{'complete%':>9s} {'outlier%':>8s} {'rms mm':>8s} {'med mm':>7s} {'oracle med':>10s} {'s':>5s}")
+    print(header)
+    for name, spec in pattern_specs(projector, args.quick).items():
+        image = patterns.render_pattern(spec)
+        for scene_name in args.scenes.split(","):
+            scene = SCENES[scene_name]()
+            for albedo in args.albedo.split(","):
+                for seed in range(args.seeds):
+                    capture = simulate.render(rig, scene, image, conditions(albedo, seed))
+                    for method in args.methods.split(","):
+                        t0 = time.perf_counter()
+                        result = Scanner(spec, rig.calibration, method=method).scan(capture.image)
+                        seconds = time.perf_counter() - t0
+                        acc = accuracy(result, capture.truth, spec, rig.calibration)
+                        row = dict(pattern=name, decoder=method, scene=scene_name, albedo=albedo, seed=seed,
+                                   seconds=seconds, **acc.as_dict())
+                        rows.append(row)
+                        print(f"{name:22s} {method:9s} {scene_name:7s} {albedo:8s} {seed:4d} "
+                              f"{100 * acc.stripe_accuracy:8.2f} {100 * acc.completeness:9.2f} "
+                              f"{100 * acc.outliers:8.2f} {acc.rms_mm:8.2f} {acc.median_mm:7.2f} "
+                              f"{acc.oracle_median_mm:10.2f} {seconds:5.1f}", flush=True)
+    Path(args.json).write_text(json.dumps({"camera": camera, "projector": projector, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

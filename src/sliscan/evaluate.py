@@ -1,0 +1,120 @@
+"""Accuracy of a scan against the virtual rig's ground truth.
+
+The figures every accuracy claim in sliscan rests on:
+
+* **stripe accuracy**: of the pixels the projector lights, the fraction decoded to exactly the
+  stripe the ground-truth projector row lies in;
+* **completeness**: the fraction of lit pixels that got a valid point;
+* **3D error**: distance between each valid point and the true surface point of that pixel
+  (mm): RMS, median, 95th percentile;
+* **outliers**: valid points farther from the truth than one stripe's depth at that pixel
+  (a wrong stripe by more than one, or a point where no lit surface was);
+* **oracle**: the same errors for triangulating the ground-truth stripe (the staircase of the
+  code itself): what a perfect decoder of this pattern would get.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sliscan.patterns import stripe_center, stripe_of_line
+from sliscan.reconstruct import triangulate
+from sliscan.simulate import GroundTruth
+from sliscan.types import Calibration, PatternSpec, ScanResult
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    """Scan accuracy figures (see the module docstring); lengths in mm, fractions in [0, 1]."""
+
+    lit_pixels: int
+    valid_pixels: int
+    completeness: float
+    stripe_accuracy: float
+    wrong_stripe: float
+    outliers: float
+    rms_mm: float
+    median_mm: float
+    p95_mm: float
+    oracle_rms_mm: float
+    oracle_median_mm: float
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def true_proj_line(truth: GroundTruth, spec: PatternSpec) -> NDArray[np.float64]:
+    """Ground-truth projector line along the phase direction per camera pixel (NaN unlit)."""
+    line = truth.proj[..., 1] if spec.orientation == "rows" else truth.proj[..., 0]
+    return np.where(truth.lit, line, np.nan)
+
+
+def true_stripes(truth: GroundTruth, spec: PatternSpec) -> NDArray[np.int64]:
+    """Ground-truth stripe index per camera pixel, -1 where the projector does not light it."""
+    return np.where(truth.lit, stripe_of_line(true_proj_line(truth, spec), spec), -1)
+
+
+def _errors(points: NDArray[np.floating], truth: GroundTruth, mask: NDArray[np.bool_]) -> NDArray[np.float64]:
+    diff = points[mask].astype(np.float64) - truth.points[mask].astype(np.float64)
+    return np.linalg.norm(diff, axis=-1)
+
+
+def _stats(errors: NDArray[np.float64]) -> tuple[float, float, float]:
+    if errors.size == 0:
+        return float("nan"), float("nan"), float("nan")
+    return (float(np.sqrt(np.mean(errors**2))), float(np.median(errors)), float(np.percentile(errors, 95)))
+
+
+def stripe_depth(truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> NDArray[np.float32]:
+    """Length (mm) of the camera ray inside the true stripe of each lit pixel."""
+    stripe = true_stripes(truth, spec)
+    half = 0.5 * spec.phase_lines / spec.stripes
+    centre = stripe_center(stripe, spec)
+    near = triangulate(centre - half, calibration, orientation=spec.orientation, valid=stripe >= 0)
+    far = triangulate(centre + half, calibration, orientation=spec.orientation, valid=stripe >= 0)
+    return np.linalg.norm(far - near, axis=-1).astype(np.float32)
+
+
+def oracle_points(truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> NDArray[np.float32]:
+    """Triangulation of the ground-truth stripe centre: a perfect decoder's points."""
+    stripe = true_stripes(truth, spec)
+    return triangulate(stripe_center(stripe, spec), calibration, orientation=spec.orientation, valid=stripe >= 0)
+
+
+def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> Accuracy:
+    """Compare a scan with the virtual rig's ground truth.
+
+    Parameters
+    ----------
+    result : ScanResult
+        The scan of a rendered capture.
+    truth : GroundTruth
+        From `sliscan.simulate.render` for that capture.
+    spec, calibration
+        The pattern and the rig's calibration the scan used.
+    """
+    stripes = true_stripes(truth, spec)
+    lit = stripes >= 0
+    valid = result.valid
+    n_lit = int(lit.sum())
+    correct = valid & lit & (result.stripe == stripes)
+    on_surface = valid & truth.surface
+    errors = _errors(result.points, truth, on_surface)
+    depth = stripe_depth(truth, spec, calibration)
+    far = np.zeros_like(valid)
+    far[on_surface] = errors > np.where(lit[on_surface], depth[on_surface], 0)
+    outliers = far | (valid & ~truth.surface)
+    oracle = oracle_points(truth, spec, calibration)
+    oracle_err = _errors(oracle, truth, lit & np.all(np.isfinite(oracle), axis=-1))
+    rms, med, p95 = _stats(errors)
+    orms, omed, _ = _stats(oracle_err)
+    n_valid = int(valid.sum())
+    return Accuracy(lit_pixels=n_lit, valid_pixels=n_valid,
+                    completeness=float((valid & lit).sum() / max(n_lit, 1)),
+                    stripe_accuracy=float(correct.sum() / max(n_lit, 1)),
+                    wrong_stripe=float((valid & lit & ~correct).sum() / max(n_valid, 1)),
+                    outliers=float(outliers.sum() / max(n_valid, 1)),
+                    rms_mm=rms, median_mm=med, p95_mm=p95, oracle_rms_mm=orms, oracle_median_mm=omed)
