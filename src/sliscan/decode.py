@@ -116,8 +116,23 @@ def _zero_code_pixels(lit: NDArray[np.bool_], demod: Demodulated, ratio: float, 
     return ~lit & (weights > 0.02) & (demod.dc >= ratio * reference)
 
 
+def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclear: NDArray[np.bool_],
+                      spec: PatternSpec) -> NDArray[np.bool_]:
+    """True where exactly one bit is unclear and flipping it gives an adjacent stripe.
+
+    Such a pixel sits on the border of two neighbouring stripes (Gray code neighbours differ
+    in one bit), so either decision is off by at most one stripe: keep it.  A single unclear
+    bit whose flip jumps further is a real ambiguity: drop the pixel.
+    """
+    single = unclear.sum(axis=0) == 1
+    which = np.argmax(unclear, axis=0)
+    flipped = code ^ (1 << (spec.bits - 1 - which))
+    other = code_to_stripe(flipped, spec)
+    return single & (other >= 0) & (np.abs(other - stripe) == 1)
+
+
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | None = None,
-           min_confidence: float = 0.1, max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.55,
+           min_confidence: float = 0.1, min_snr: float = 3.0, max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.55,
            window: int = 64) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
@@ -131,7 +146,11 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
         Carrier-to-DC ratio under which a pixel counts as unlit; default from the capture
         (a third of the way from the noise cluster to the lit cluster).
     min_confidence : float
-        Pixels whose weakest bit margin is below this are invalid.
+        A bit is clear when its level is at least half this far from 0.5 ...
+    min_snr : float
+        ... and at least this many noise standard deviations (`Demodulated.noise`) from its
+        threshold.  A pixel is valid when every bit is clear, or when only one is not and
+        flipping it gives the neighbouring stripe (a pixel on a stripe border).
     max_residual : float
         Pixels whose window the carrier model explains worse than this are invalid.
     max_misfit : float
@@ -154,18 +173,31 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
     lit = _lit_by_modulation(mod, demod, min_modulation)
     stats = _sample(lit)
     levels = np.empty_like(ratio, dtype=np.float32)
+    spans = np.empty(bits)
     for n in range(bits):
         off, on = two_means(ratio[n][stats])
-        levels[n] = (ratio[n] - off) / max(on - off, 1e-6)
+        spans[n] = max(on - off, 1e-6)
+        levels[n] = (ratio[n] - off) / spans[n]
+    if spec.pilot is None:
+        # Without a pilot the DC carries the ambient light, so a dimly lit pixel reads every
+        # bit low.  A lit code has at least one bit on: rescale so the strongest bit reads 1.
+        strongest = levels.max(axis=0)
+        levels = np.where(strongest >= 0.6, levels / np.maximum(strongest, 1e-6), levels).astype(np.float32)
     if spec.pilot is None and not spec.skip_zero_code:
         # Modulated pixels have at least one bit on; add the lit all-zero stripe.
         lit = lit | _zero_code_pixels(lit, demod, zero_code_dc, sigma=window)
     on_bits = levels >= 0.5
-    stripe = code_to_stripe(bits_to_code(on_bits), spec)
-    confidence = np.clip(2 * np.abs(levels - 0.5).min(axis=0), 0, 1).astype(np.float32)
+    code = bits_to_code(on_bits)
+    stripe = code_to_stripe(code, spec)
+    margin = np.abs(levels - 0.5)
+    confidence = np.clip(2 * margin.min(axis=0), 0, 1).astype(np.float32)
+    clear = margin >= 0.5 * min_confidence
+    if demod.noise is not None:
+        clear &= margin * spans[:, None, None] * np.maximum(reference, 1e-6) >= min_snr * demod.noise
+    unclear = (~clear).sum(axis=0)
     # The residual is relative to the AC energy, which the lit all-zero stripe does not have.
     modelled = (demod.residual <= max_residual) | ~on_bits.any(axis=0)
-    valid = lit & (stripe >= 0) & (confidence >= min_confidence) & modelled
+    valid = lit & (stripe >= 0) & modelled & ((unclear == 0) | _flip_is_adjacent(code, stripe, ~clear, spec))
     if demod.misfit is not None:
         valid &= demod.misfit <= max_misfit
     stripe = np.where(valid, stripe, -1).astype(np.int16)

@@ -79,6 +79,9 @@ class Demodulated:
     residual : (H, W) float32 array
         Fraction of the window's AC energy that the carrier model leaves unexplained, in
         [0, 1]: high at edges, in shadow and where the signal is noise.
+    noise : (H, W) float32 array or None
+        Standard deviation of each amplitude estimate (image units), from the part of the
+        window the model leaves unexplained; None for demodulators that do not compute it.
     misfit : (H, W) float32 array or None
         How badly the window's fitted model predicts the pixel's own neighbourhood (the mean
         over the shortest carrier period around it), relative to the window's DC.  A pixel in
@@ -90,6 +93,7 @@ class Demodulated:
     dc: NDArray[np.float32]
     residual: NDArray[np.float32]
     misfit: NDArray[np.float32] | None = None
+    noise: NDArray[np.float32] | None = None
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -237,6 +241,9 @@ class _WindowTables:
     g: NDArray[np.complex128]  # (C, lines, W)
     h: NDArray[np.complex128]  # (C, lines, W)
     near: NDArray[np.complex128]  # (C, lines, W)
+    pairs: tuple[tuple[int, int], ...]  # (n, m), n <= m
+    sums: NDArray[np.complex128]  # (pairs, lines, W): mean of exp(i (w_n + w_m) x)
+    diffs: NDArray[np.complex128]  # (pairs, lines, W): mean of exp(i (w_n - w_m) x); 1 for n == m
     t2: float
     window: int
     short: int
@@ -254,7 +261,15 @@ class _WindowTables:
         h = phasors * (series * t).mean(axis=-1, keepdims=True)
         near_start = np.clip(x - short // 2, 0, max(width - short, 0))
         near = np.exp(1j * omega * near_start) * np.exp(1j * omega * np.arange(short)).mean(axis=-1, keepdims=True)
-        return cls(phasors, g, h, near, float(np.mean(t * t)), window, short)
+        pairs = tuple((n, m) for n in range(omega.shape[0]) for m in range(n, omega.shape[0]))
+        sums = np.stack([_window_mean_phasor(omega[n] + omega[m], x, j) for n, m in pairs])
+        diffs = np.stack([_window_mean_phasor(omega[n] - omega[m], x, j) for n, m in pairs])
+        return cls(phasors, g, h, near, pairs, sums, diffs, float(np.mean(t * t)), window, short)
+
+
+def _window_mean_phasor(omega: NDArray[np.float64], x: NDArray[np.float64], j: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """Mean of ``exp(i omega x)`` over the window starting at each x: ``(lines, W)``."""
+    return np.exp(1j * omega * x) * np.exp(1j * omega * j).mean(axis=-1, keepdims=True)
 
 
 def _short_window(carriers: Carriers) -> int:
@@ -272,14 +287,16 @@ def _box_mean_1d(values: NDArray, length: int) -> NDArray:
     return (cum[..., end] - cum[..., start]) / (end - start)
 
 
-def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
-                 iterations: int = 3) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables) -> tuple[NDArray, ...]:
     """Least-squares fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` in each window.
 
     Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
     but not to a ramp: an albedo gradient across the window would leak into every carrier.
-    The coupling terms are known per window start (`_WindowTables`), so the normal equations
-    are solved by a few fixed-point sweeps, all element-wise.
+    With the couplings of the DC and the ramp to each carrier known per window start
+    (`_WindowTables`), the carriers are eliminated (``c_n = q_n - d g_n - s h_n``) and the
+    remaining 2x2 system for the DC and the ramp is solved exactly, element-wise.  Only the
+    carriers' couplings to each other (of the order of the window's rounding to whole
+    pixels) are neglected.
 
     Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...), prediction)``,
     where `prediction` is the fitted model's mean over the short window around each pixel.
@@ -292,22 +309,88 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables,
     m1 = _running_mean(cum_xi, start, end, win) - centre * m0
     q = np.stack([_running_mean(cq, start, end, win) for cq in cum_q])  # (C, lines, W)
     g, h = tables.g[:, :, start], tables.h[:, :, start]
-    c = q
-    for _ in range(iterations):
-        d = m0 - 2 * np.sum((c * np.conj(g)).real, axis=0)
-        slope = (m1 - 2 * np.sum((c * np.conj(h)).real, axis=0)) / tables.t2
-        c = q - d * g - slope * h
-    var = np.maximum(_running_mean(cum_i2, start, end, win) - m0 * m0, 0)
-    amp = 2 * np.abs(c)
-    # <I, model> - DC^2: the fitted model's share of the window's AC energy (exact at the
-    # least-squares optimum, and never counts the overlap of non-orthogonal terms twice).
-    explained = d * m0 - m0 * m0 + slope * m1 + 2 * np.sum((np.conj(c) * q).real, axis=0)
+    gg = 2 * np.sum(np.abs(g) ** 2, axis=0)
+    hh = 2 * np.sum(np.abs(h) ** 2, axis=0)
+    gh = 2 * np.sum((g * np.conj(h)).real, axis=0)
+    a11, a12, b1 = 1 - gg, -gh, m0 - 2 * np.sum((q * np.conj(g)).real, axis=0)
+    a21, a22, b2 = -gh, tables.t2 - hh, m1 - 2 * np.sum((q * np.conj(h)).real, axis=0)
+    det = a11 * a22 - a12 * a21
+    det = np.where(np.abs(det) > 1e-12, det, 1e-12)
+    d = (b1 * a22 - a12 * b2) / det
+    slope = (a11 * b2 - a21 * b1) / det
+    c = q - d * g - slope * h
+    mean_sq = _running_mean(cum_i2, start, end, win)
+    var = np.maximum(mean_sq - m0 * m0, 0)
+    # mean of (I - model)^2 = <I,I> - 2 <I,model> + <model,model>, every Gram term exact, so
+    # the small neglected couplings only enter to second order.
+    cross = d * m0 + slope * m1 + 2 * np.sum((np.conj(c) * q).real, axis=0)
+    model_sq = (d * d + slope * slope * tables.t2 + 4 * d * np.sum((c * np.conj(g)).real, axis=0)
+                + 4 * slope * np.sum((c * np.conj(h)).real, axis=0))
+    for k, (n, m) in enumerate(tables.pairs):
+        weight = 2.0 if n == m else 4.0
+        model_sq = model_sq + weight * (c[n] * c[m] * tables.sums[k][:, start]).real
+        model_sq = model_sq + (2 * np.abs(c[n]) ** 2 if n == m else 4 * (c[n] * np.conj(c[m]) * tables.diffs[k][:, start]).real)
+    unexplained = np.maximum(mean_sq - 2 * cross + model_sq, 0)
     x = np.arange(start.size)
     prediction = d + slope * (x - centre) + 2 * np.sum((c * tables.near).real, axis=0)
-    return np.maximum(var - explained, 0), var, d, amp, prediction
+    return unexplained, var, d, 2 * np.abs(c), prediction
+
+
+PLACEMENT_GAIN = 0.5
+PLACEMENT_POOR = 0.0
+
+
+def _merge(best: list[NDArray], new: tuple[NDArray, ...], better: NDArray[np.bool_]) -> None:
+    """Take `new`'s entries where `better` (maps and per-carrier stacks alike)."""
+    for i, value in enumerate(new):
+        best[i] = np.where(better[None] if value.ndim == better.ndim + 1 else better, value, best[i])
+
+
+def _fit_lines(img: NDArray[np.float32], carriers: Carriers, starts: list[NDArray[np.intp]], short: int,
+               chunk_lines: int) -> list[NDArray]:
+    """Best window fit of every line: ``[unexplained, var, dc, amp (C, H, W), misfit]``.
+
+    The first entry of `starts` is the centred window; another placement replaces it where
+    it leaves less than half the centred window's unexplained energy and the least overall.
+    """
+    h, w = img.shape
+    x = np.arange(w, dtype=np.float64)
+    out = [np.empty((h, w)), np.empty((h, w)), np.empty((h, w)), np.empty((carriers.frequencies.size, h, w)),
+           np.empty((h, w))]
+    for r0 in range(0, h, chunk_lines):
+        block = img[r0 : r0 + chunk_lines].astype(np.float64)
+        lines = slice(r0, r0 + block.shape[0])
+        tables = _WindowTables.build(w, carriers.line_frequencies(lines), carriers.window, short)
+        cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
+                [_cumsum0(block * ph) for ph in tables.phasors])
+        best = list(_fit_windows(cums, starts[0], tables))
+        centre_unexplained = best[0]
+        for start in starts[1:]:
+            fit = _fit_windows(cums, start, tables)
+            _merge(best, fit, (fit[0] < best[0]) & (fit[0] < PLACEMENT_GAIN * centre_unexplained)
+                   & (centre_unexplained > PLACEMENT_POOR * best[1]))
+        unexplained, var, mean, a, prediction = best
+        misfit = np.abs(_box_mean_1d(block, short) - prediction) / np.maximum(mean, 1e-6)
+        for i, value in enumerate((unexplained, var, mean, a, misfit)):
+            out[i][..., lines, :] = value
+    return out
+
+
+def _shear_rows(width: int, height: int, slope: float) -> NDArray[np.intp]:
+    """Row offset of each column for a shear of `slope` rows per column about the centre."""
+    return np.round(slope * (np.arange(width) - (width - 1) / 2)).astype(np.intp).clip(-height + 1, height - 1)
+
+
+def _shear(img: NDArray, offsets: NDArray[np.intp], sign: int) -> NDArray:
+    """Shift column x of the last two axes by ``sign * offsets[x]`` rows (edge rows repeat)."""
+    h = img.shape[-2]
+    rows = np.clip(np.arange(h)[:, None] + sign * offsets[None, :], 0, h - 1)
+    return np.take_along_axis(img, np.broadcast_to(rows, img.shape), axis=-2)
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
+                      shears: tuple[float, ...] = (0.0, -0.25, 0.25, -0.6, 0.6), shear_gain: float = 0.5,
+                      shear_poor: float = 0.05,
                       chunk_lines: int = 128) -> Demodulated:
     """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
 
@@ -328,6 +411,14 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         leaves less than half its unexplained energy: where the code changes gradually
         across the window (an oblique stripe border) the centred fit is the unbiased one.
         If false, always the centred window.
+    shears : tuple of float
+        Window slopes tried, in lines per pixel along the carriers (0 = along the line).  On a
+        curved or tilted surface the stripes cross camera lines obliquely; a window that
+        follows them sees one code instead of several.  The first slope is the reference.
+    shear_gain, shear_poor : float
+        Another slope replaces the reference only where the reference leaves more than
+        `shear_poor` of the window's AC energy unexplained (a poor fit, not noise) and the
+        other slope less than `shear_gain` times what the reference leaves.
     chunk_lines : int
         Lines processed at once (bounds memory).
 
@@ -340,31 +431,22 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     h, w = img.shape
     short = _short_window(carriers)
     starts = [_window_bounds(w, carriers.window, p)[0] for p in ((0, -1, 1) if adaptive else (0,))]
-    x = np.arange(w, dtype=np.float64)
-    amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
-    dc = np.empty((h, w), dtype=np.float32)
-    residual = np.empty((h, w), dtype=np.float32)
-    misfit = np.empty((h, w), dtype=np.float32)
-    for r0 in range(0, h, chunk_lines):
-        block = img[r0 : r0 + chunk_lines].astype(np.float64)
-        lines = slice(r0, r0 + block.shape[0])
-        tables = _WindowTables.build(w, carriers.line_frequencies(lines), carriers.window, short)
-        cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
-                [_cumsum0(block * ph) for ph in tables.phasors])
-        best = list(_fit_windows(cums, starts[0], tables))
-        centre_unexplained = best[0]
-        for start in starts[1:]:
-            fit = _fit_windows(cums, start, tables)
-            better = (fit[0] < best[0]) & (fit[0] < 0.5 * centre_unexplained)
-            for i, new in enumerate(fit):
-                best[i] = np.where(better[None] if new.ndim == 3 else better, new, best[i])
-        unexplained, var, mean, a, prediction = best
-        observed = _box_mean_1d(block, short)
-        amp[:, r0 : r0 + chunk_lines] = a
-        dc[r0 : r0 + chunk_lines] = mean
-        residual[r0 : r0 + chunk_lines] = unexplained / np.maximum(var, 1e-12)
-        misfit[r0 : r0 + chunk_lines] = np.abs(observed - prediction) / np.maximum(mean, 1e-6)
-    return Demodulated(amplitude=amp, dc=dc, residual=residual, misfit=misfit)
+    best: list[NDArray] = []
+    for slope in shears:
+        offsets = _shear_rows(w, h, slope)
+        fit = _fit_lines(_shear(img, offsets, +1), carriers, starts, short, chunk_lines)
+        fit = [_shear(value, offsets, -1) for value in fit]
+        if not best:
+            best, reference = fit, fit[0]
+        else:
+            poor = reference > shear_poor * best[1]
+            _merge(best, tuple(fit), poor & (fit[0] < best[0]) & (fit[0] < shear_gain * reference))
+    unexplained, var, mean, amp, misfit = best
+    # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
+    dof = max(carriers.window - 2 * carriers.frequencies.size - 2, 1)
+    return Demodulated(amplitude=amp.astype(np.float32), dc=mean.astype(np.float32),
+                       residual=(unexplained / np.maximum(var, 1e-12)).astype(np.float32),
+                       misfit=misfit.astype(np.float32), noise=np.sqrt(2 * unexplained / dof).astype(np.float32))
 
 
 def butterworth_bandpass(freqs: NDArray[np.float64], centre: float, half_width: float, order: int) -> NDArray[np.float64]:
@@ -460,7 +542,8 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     run = demodulate_window if method == "window" else demodulate_bandpass
     out = run(view, found)
     if spec.orientation == "columns":
-        out = Demodulated(np.ascontiguousarray(out.amplitude.transpose(0, 2, 1)),
-                          np.ascontiguousarray(out.dc.T), np.ascontiguousarray(out.residual.T),
-                          None if out.misfit is None else np.ascontiguousarray(out.misfit.T))
+        def back(a: NDArray | None) -> NDArray | None:
+            return None if a is None else np.ascontiguousarray(np.swapaxes(a, -1, -2))
+
+        out = Demodulated(back(out.amplitude), back(out.dc), back(out.residual), back(out.misfit), back(out.noise))
     return out, found
