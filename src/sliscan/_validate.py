@@ -111,6 +111,9 @@ def atomic_path(path: str | os.PathLike, *, inputs: tuple[str | os.PathLike, ...
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{target.suffix}", dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp makes 0600; a written file should not be
     try:
         yield tmp_path
         os.replace(tmp_path, target)

@@ -13,8 +13,8 @@ lit pixels), so crosstalk and roll-off shift the threshold instead of flipping b
 
 The all-zero code projects no carrier at all: in one frame it looks like shadow.  Patterns with
 ``skip_zero_code`` never project it, so unmodulated pixels are shadow.  Otherwise (the
-thesis's pattern) an unmodulated pixel is taken as the lit all-zero stripe when its DC is at
-least `zero_code_dc` times the DC of the modulated pixels around it, and as shadow otherwise.
+thesis's pattern) the lit zero stripe is found from the code's structure: it is the
+neighbour of stripe 1 on the side away from stripe 2 (see `_zero_stripe`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from sliscan.demodulate import Demodulated
 from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center
@@ -87,33 +86,107 @@ def _sample(mask: NDArray[np.bool_], limit: int = 200_000) -> NDArray[np.bool_]:
     return thin
 
 
-def modulation(demod: Demodulated, spec: PatternSpec) -> NDArray[np.float32]:
-    """How strongly the projector's carriers show at each pixel, relative to the local DC.
+def _dc_floor(dc: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The DC floored at 2 % of the frame's bright level, so black pixels (outside the
+    projector, no ambient light) do not look modulated by dividing noise by 0."""
+    return np.maximum(dc, 0.02 * float(np.percentile(dc[::4, ::4], 99)) + 1e-6)
 
-    The pilot's envelope over the DC when there is a pilot, else the largest bit envelope
-    over the DC.  The DC is floored at 2 % of the frame's bright level, so black pixels
-    (outside the projector, no ambient light) do not look modulated by dividing noise by 0.
+
+def _levels(ratio: NDArray[np.floating], sample: NDArray[np.bool_]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Per-carrier ratios mapped to 0 (off cluster) .. 1 (on cluster) of `sample`; also the spans."""
+    levels = np.empty(ratio.shape, dtype=np.float32)
+    spans = np.empty(ratio.shape[0])
+    for n in range(ratio.shape[0]):
+        off, on = two_means(ratio[n][sample])
+        spans[n] = max(on - off, 1e-6)
+        levels[n] = (ratio[n] - off) / spans[n]
+    return levels, spans
+
+
+def _lit(demod: Demodulated, spec: PatternSpec, min_modulation: float, min_snr: float) -> NDArray[np.bool_]:
+    """Pixels whose carriers stand clear of the noise.
+
+    Each carrier's envelope over the DC is put on its own 0 (off) .. 1 (on) scale over the
+    whole frame, so a code whose only bit rides on the most attenuated carrier counts as
+    much as any other.  A pixel is lit when its strongest carrier (the pilot, if any) reaches
+    `min_modulation` on that scale and stands `2 * min_snr` noise deviations above zero.
     """
-    dc = np.maximum(demod.dc, 0.02 * float(np.percentile(demod.dc[::4, ::4], 99)) + 1e-6)
-    if spec.pilot is not None:
-        return demod.amplitude[spec.bits] / dc
-    return demod.amplitude[: spec.bits].max(axis=0) / dc
+    carriers = [spec.bits] if spec.pilot is not None else list(range(spec.bits))
+    ratio = demod.amplitude[carriers] / _dc_floor(demod.dc)[None]
+    levels, _ = _levels(ratio, _sample(np.isfinite(ratio[0])))
+    lit = levels.max(axis=0) >= min_modulation
+    if demod.noise is not None:
+        lit &= demod.amplitude[carriers].max(axis=0) >= 2 * min_snr * demod.noise
+    return lit
 
 
-def _lit_by_modulation(mod: NDArray[np.float32], demod: Demodulated, min_modulation: float | None) -> NDArray[np.bool_]:
-    """Pixels whose carrier modulation stands above the noise floor."""
-    if min_modulation is None:
-        lo, hi = two_means(mod[_sample(np.isfinite(mod))])
-        min_modulation = lo + 0.35 * (hi - lo)
-    return (mod >= min_modulation) & (demod.dc > 0)
+def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: NDArray[np.float32], spec: PatternSpec,
+                 *, min_dc: float) -> NDArray[np.bool_]:
+    """Pixels of the lit all-zero stripe, found next to stripe 1 along the phase direction.
+
+    Stripe 0 carries no carrier, so a single frame cannot tell it from shadow pixel by
+    pixel.  Two structural facts can: stripe 0 is the only neighbour of stripe 1 besides
+    stripe 2, and on a continuous surface the stripes follow each other monotonically along
+    every camera line in the phase direction.  So along each such line, walking from the end
+    of stripe 1 away from stripe 2, the unmodulated pixels are stripe 0 for at most about
+    stripe 1's own length there, as long as their DC stays at least `min_dc` times stripe 1's
+    (the same surface, lit).  The walk stops at the first pixel that fails.
+
+    Parameters
+    ----------
+    stripe : (H, W) int array
+        Stripes decoded from the modulated pixels, -1 where undecided or unmodulated.
+    unmodulated : (H, W) bool array
+        Pixels without a carrier: candidates.
+    dc : (H, W) float array
+        Local mean intensity.
+    """
+    if spec.orientation == "columns":
+        return _zero_stripe(stripe.T, unmodulated.T, dc.T, spec.with_(orientation="rows"), min_dc=min_dc).T
+    h = stripe.shape[0]
+    rows = np.arange(h)[:, None]
+    one, two = stripe == 1, stripe == 2
+    if not one.any():
+        return np.zeros_like(unmodulated)
+    # which way stripe numbers grow along the columns: compare where stripes 1 and 2 lie
+    down = not two.any() or np.median(np.nonzero(two)[0]) >= np.median(np.nonzero(one)[0])
+    if not down:
+        return _zero_stripe(stripe[::-1], unmodulated[::-1], dc[::-1], spec, min_dc=min_dc)[::-1]
+    top = np.where(one, rows, h).min(axis=0)  # first stripe-1 row of each column
+    length = one.sum(axis=0)
+    reference = np.where(one, dc, 0).sum(axis=0) / np.maximum(length, 1)  # mean DC of stripe 1
+    near = (rows < top) & (rows >= top - 1.2 * length)
+    # undecided or already-zero pixels (a blurred border with stripe 1) do not stop the walk
+    passable = near & (unmodulated | (stripe <= 0)) & (dc >= min_dc * reference)
+    blocked = np.where(near & ~passable, rows, -1).max(axis=0)  # nearest failing row above stripe 1
+    return passable & unmodulated & (rows > blocked)
 
 
-def _zero_code_pixels(lit: NDArray[np.bool_], demod: Demodulated, ratio: float, sigma: float) -> NDArray[np.bool_]:
-    """Unmodulated pixels bright enough, next to modulated ones, to be the lit all-zero stripe."""
-    weights = ndimage.gaussian_filter(lit.astype(np.float32), sigma)
-    local = ndimage.gaussian_filter(np.where(lit, demod.dc, 0).astype(np.float32), sigma)
-    reference = local / np.maximum(weights, 1e-6)
-    return ~lit & (weights > 0.02) & (demod.dc >= ratio * reference)
+def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_], *, radius: int = 3,
+                           min_share: float = 0.5) -> NDArray[np.bool_]:
+    """Valid pixels whose stripe matches (within one) most valid pixels around them.
+
+    On any surface the stripe index varies slowly across the camera image, except at depth
+    edges, where each side still agrees with itself; an isolated decision that disagrees with
+    at least `min_share` of the valid pixels in its ``(2 radius + 1)**2`` box is a decoding
+    error (a flipped high bit), and would be a point far off the surface.
+
+    Parameters
+    ----------
+    stripe : (H, W) int array
+    valid : (H, W) bool array
+    """
+    s = np.where(valid, stripe, -10).astype(np.int32)
+    padded = np.pad(s, radius, constant_values=-10)
+    h, w = s.shape
+    agree = np.zeros((h, w), dtype=np.int32)
+    total = np.zeros((h, w), dtype=np.int32)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            other = padded[dy : dy + h, dx : dx + w]
+            total += other >= 0
+            agree += (other >= 0) & (np.abs(other - s) <= 1)
+    return valid & (agree >= min_share * total)
 
 
 def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclear: NDArray[np.bool_],
@@ -131,9 +204,9 @@ def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclea
     return single & (other >= 0) & (np.abs(other - stripe) == 1)
 
 
-def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | None = None,
-           min_confidence: float = 0.1, min_snr: float = 3.0, max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.55,
-           window: int = 64) -> Decoded:
+def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
+           min_confidence: float = 0.1, min_snr: float = 3.0, stripe_borders: bool = True, max_residual: float = 0.6,
+           max_misfit: float = 0.25, zero_code_dc: float = 0.6, neighbour_radius: int = 3) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
     Parameters
@@ -142,25 +215,27 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
         From `sliscan.demodulate.demodulate`, camera orientation.
     spec : PatternSpec
         The projected pattern.
-    min_modulation : float, optional
-        Carrier-to-DC ratio under which a pixel counts as unlit; default from the capture
-        (a third of the way from the noise cluster to the lit cluster).
+    min_modulation : float
+        A pixel is lit when its strongest carrier reaches this fraction of the way from the
+        carrier's off level to its on level (see `_lit`).
     min_confidence : float
         A bit is clear when its level is at least half this far from 0.5 ...
     min_snr : float
         ... and at least this many noise standard deviations (`Demodulated.noise`) from its
-        threshold.  A pixel is valid when every bit is clear, or when only one is not and
-        flipping it gives the neighbouring stripe (a pixel on a stripe border).
+        threshold.  A pixel is valid when every bit is clear, or, with `stripe_borders`,
+        when only one is not and flipping it gives the neighbouring stripe (a pixel on a
+        stripe border, where either answer is off by at most one stripe).
     max_residual : float
         Pixels whose window the carrier model explains worse than this are invalid.
     max_misfit : float
         Pixels whose own neighbourhood the window's model mispredicts by more than this
         fraction of the DC are invalid (see `Demodulated.misfit`).
     zero_code_dc : float
-        For patterns that project the all-zero code: DC ratio to the surrounding lit pixels
-        above which an unmodulated pixel is the lit zero stripe (see module docstring).
-    window : int
-        Scale (camera pixels) of the neighbourhood used for the zero-code DC reference.
+        For patterns that project the all-zero code: the smallest DC, relative to the
+        adjacent stripe 1, of a pixel taken as the lit zero stripe (see `_zero_stripe`).
+    neighbour_radius : int
+        Drop valid pixels that disagree with most valid pixels within this many pixels
+        (`agrees_with_neighbours`); 0 keeps them.
 
     Returns
     -------
@@ -169,23 +244,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
     bits = spec.bits
     reference = demod.amplitude[bits] if spec.pilot is not None else demod.dc
     ratio = demod.amplitude[:bits] / np.maximum(reference, 1e-6)[None]
-    mod = modulation(demod, spec)
-    lit = _lit_by_modulation(mod, demod, min_modulation)
-    stats = _sample(lit)
-    levels = np.empty_like(ratio, dtype=np.float32)
-    spans = np.empty(bits)
-    for n in range(bits):
-        off, on = two_means(ratio[n][stats])
-        spans[n] = max(on - off, 1e-6)
-        levels[n] = (ratio[n] - off) / spans[n]
-    if spec.pilot is None:
-        # Without a pilot the DC carries the ambient light, so a dimly lit pixel reads every
-        # bit low.  A lit code has at least one bit on: rescale so the strongest bit reads 1.
-        strongest = levels.max(axis=0)
-        levels = np.where(strongest >= 0.6, levels / np.maximum(strongest, 1e-6), levels).astype(np.float32)
-    if spec.pilot is None and not spec.skip_zero_code:
-        # Modulated pixels have at least one bit on; add the lit all-zero stripe.
-        lit = lit | _zero_code_pixels(lit, demod, zero_code_dc, sigma=window)
+    lit = _lit(demod, spec, min_modulation, min_snr)
+    levels, spans = _levels(ratio, _sample(lit))
     on_bits = levels >= 0.5
     code = bits_to_code(on_bits)
     stripe = code_to_stripe(code, spec)
@@ -197,9 +257,18 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float | Non
     unclear = (~clear).sum(axis=0)
     # The residual is relative to the AC energy, which the lit all-zero stripe does not have.
     modelled = (demod.residual <= max_residual) | ~on_bits.any(axis=0)
-    valid = lit & (stripe >= 0) & modelled & ((unclear == 0) | _flip_is_adjacent(code, stripe, ~clear, spec))
+    settled = unclear == 0
+    if stripe_borders:
+        settled |= _flip_is_adjacent(code, stripe, ~clear, spec)
+    valid = lit & (stripe >= 0) & modelled & settled
+    if spec.pilot is None and not spec.skip_zero_code:
+        # Modulated pixels have at least one bit on; add the lit all-zero stripe.
+        zero = _zero_stripe(np.where(valid, stripe, -1), ~lit, demod.dc, spec, min_dc=zero_code_dc)
+        lit, valid, stripe = lit | zero, valid | zero, np.where(zero, 0, stripe)
     if demod.misfit is not None:
         valid &= demod.misfit <= max_misfit
+    if neighbour_radius:
+        valid = agrees_with_neighbours(stripe, valid, radius=neighbour_radius)
     stripe = np.where(valid, stripe, -1).astype(np.int16)
     proj_map = stripe_center(stripe, spec).astype(np.float32)
     return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit,

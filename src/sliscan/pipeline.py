@@ -26,6 +26,33 @@ def texture_from_dc(dc: NDArray[np.floating]) -> NDArray[np.float32]:
     return np.clip(dc / max(top, 1e-6), 0, 1).astype(np.float32)
 
 
+def inside_projector(points: NDArray[np.floating], calibration: Calibration, spec: PatternSpec) -> NDArray[np.bool_]:
+    """Which points the projector can light: finite, in front of camera and projector, and
+    projecting inside the projector's image along the direction the stripes do not code.
+
+    A wrong stripe on a pixel the projector never reached (above its frustum, in shadow)
+    otherwise triangulates to a point metres away, where the camera ray meets that stripe's
+    plane outside the projector's image.
+
+    Parameters
+    ----------
+    points : (H, W, 3) array
+        World points in mm, NaN where invalid.
+    """
+    finite = np.all(np.isfinite(points), axis=-1)
+    xyz = np.where(finite[..., None], points, 0).astype(np.float64)
+    ok = finite.copy()
+    for device in (calibration.camera, calibration.projector):
+        m = device.matrix / np.linalg.norm(device.matrix[2, :3])
+        sign = np.sign(np.linalg.det(device.matrix[:, :3]))
+        ok &= sign * (xyz @ m[2, :3] + m[2, 3]) > 0  # depth > 0
+    xp = calibration.projector.project(xyz)
+    w, h = calibration.projector.size
+    across, lines = (xp[..., 0], w) if spec.orientation == "rows" else (xp[..., 1], h)
+    margin = 0.02 * lines
+    return ok & (across > -0.5 - margin) & (across < lines - 0.5 + margin)
+
+
 @dataclass
 class Scanner:
     """A reusable single-shot scanner for one pattern and one calibrated rig.
@@ -99,7 +126,8 @@ class Scanner:
         t2 = time.perf_counter()
         points = triangulate(decoded.proj_map, self.calibration, orientation=self.spec.orientation,
                              valid=decoded.valid)
-        valid = decoded.valid & np.all(np.isfinite(points), axis=-1)
+        valid = decoded.valid & inside_projector(points, self.calibration, self.spec)
+        points[~valid] = np.nan
         t3 = time.perf_counter()
         timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
         return ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc),

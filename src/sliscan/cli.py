@@ -1,0 +1,770 @@
+"""The ``sliscan`` command (DESIGN.md, "The command line").
+
+Commands: ``pattern`` (``composite``, ``carrier-only``, ``modified``), ``simulate``, ``scan``,
+``calibrate`` and ``demo``.  Every command
+
+* checks its output paths first: none may be one of its input files or another of its outputs;
+* reads and checks every input before it computes anything, and writes only at the end, each
+  file atomically (temporary file + rename), so bad input leaves nothing behind;
+* prints a one-line summary of what it wrote on stdout, and a progress bar on stderr (only on a
+  terminal) while it works;
+* on bad input prints one line ``error: <message>`` on stderr and exits with status 2.
+
+Sizes are ``WxH`` in pixels on the command line (``1024x768``), ``(W, H)`` inside.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+import click
+import numpy as np
+from numpy.typing import NDArray
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from sliscan import __version__, evaluate, patterns, simulate
+from sliscan._validate import InputError, atomic_path, read_image, write_image
+from sliscan.calibrate import calibrate_points
+from sliscan.formats import mat5, premat5
+from sliscan.formats.calibration import load_calibration, write_matrix_txt
+from sliscan.pipeline import Scanner
+from sliscan.types import Calibration, PatternSpec, ScanResult
+
+#: Exit status for bad input (a usage error, an unreadable or inconsistent file).
+BAD_INPUT = 2
+
+#: The thesis's rig (section 4.2): a 2592x1944 camera and a 1024x768 projector.
+THESIS_CAMERA = (2592, 1944)
+THESIS_PROJECTOR = (1024, 768)
+
+#: Built-in scenes of `sliscan simulate --scene`, each placed at the rig's working distance.
+SCENES: dict[str, Callable[..., simulate.Surface]] = {
+    "sphere": simulate.sphere_scene,
+    "plane": simulate.plane_scene,
+    "tilted": simulate.tilted_plane_scene,
+    "steps": simulate.steps_scene,
+}
+
+#: Surface textures of `sliscan simulate --albedo`, by name; each takes the seed.
+ALBEDOS: dict[str, Callable[[int], Callable[[Any], Any]]] = {
+    "uniform": lambda seed: simulate.UniformAlbedo(0.8),
+    "smooth": lambda seed: simulate.SmoothAlbedo(seed=seed),
+    "checker": lambda seed: simulate.CheckerAlbedo(),
+}
+
+_NO_PILOT = "none"
+
+
+# --------------------------------------------------------------------------------------------
+# Parameter types and shared options
+# --------------------------------------------------------------------------------------------
+
+
+class SizeType(click.ParamType):
+    """``WxH`` in pixels -> ``(W, H)`` tuple of positive ints."""
+
+    name = "WxH"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> tuple[int, int]:
+        if isinstance(value, tuple):
+            return value
+        try:
+            w, h = (int(v) for v in str(value).lower().split("x"))
+        except ValueError:
+            self.fail(f"expected WxH in pixels (e.g. 1024x768), got {value!r}", param, ctx)
+        if w < 1 or h < 1:
+            self.fail(f"sizes must be positive, got {value!r}", param, ctx)
+        return (w, h)
+
+
+class FloatListType(click.ParamType):
+    """Comma-separated numbers (``32,64,96,128``) -> tuple of float."""
+
+    name = "F,F,..."
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> tuple[float, ...]:
+        if isinstance(value, tuple):
+            return value
+        try:
+            return tuple(float(v) for v in str(value).split(","))
+        except ValueError:
+            self.fail(f"expected comma-separated numbers (e.g. 32,64,96,128), got {value!r}", param, ctx)
+
+
+class PilotType(click.ParamType):
+    """A pilot carrier frequency, or ``none`` for no pilot."""
+
+    name = "F|none"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float | str:
+        if isinstance(value, float) or value == _NO_PILOT:
+            return value
+        try:
+            return float(value)
+        except ValueError:
+            self.fail(f"expected a frequency or 'none', got {value!r}", param, ctx)
+
+
+SIZE = SizeType()
+FLOATS = FloatListType()
+INPUT_FILE = click.Path(dir_okay=False, path_type=Path)
+OUTPUT_FILE = click.Path(dir_okay=False, path_type=Path)
+POSITIVE = click.FloatRange(min=0, min_open=True)
+
+
+def _options(*decorators: Callable[[Callable], Callable]) -> Callable[[Callable], Callable]:
+    """Apply several click decorators in the order written (top first, as if stacked)."""
+
+    def apply(func: Callable) -> Callable:
+        for decorator in reversed(decorators):
+            func = decorator(func)
+        return func
+
+    return apply
+
+
+def _camera_option(**kwargs: Any) -> Callable[[Callable], Callable]:
+    """``--camera`` (alias ``--camera-size``) WxH."""
+    return click.option("--camera", "--camera-size", "camera", type=SIZE, **kwargs)
+
+
+def _projector_option(**kwargs: Any) -> Callable[[Callable], Callable]:
+    """``--projector`` WxH."""
+    return click.option("--projector", type=SIZE, **kwargs)
+
+
+_calibration_options = _options(
+    click.option("--calibration", type=INPUT_FILE, help="Calibration JSON (DESIGN.md format)."),
+    click.option("--camera-matrix", type=INPUT_FILE,
+                 help="Instead of --calibration: the camera's 3x4 matrix as text (the thesis's cam.txt)."),
+    click.option("--projector-matrix", type=INPUT_FILE,
+                 help="With --camera-matrix: the projector's 3x4 matrix as text (proj.txt)."),
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Shared helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _check_outputs(outputs: Sequence[Path | None], inputs: Sequence[Path | None]) -> None:
+    """Refuse an output path that is an input file or that is given twice.
+
+    Raises
+    ------
+    InputError
+        Naming the output path.
+    """
+    given = {Path(os.path.realpath(p)): p for p in inputs if p is not None}
+    seen: dict[Path, Path] = {}
+    for out in outputs:
+        if out is None:
+            continue
+        key = Path(os.path.realpath(out))
+        if key in given:
+            raise InputError(f"{out}: refusing to overwrite the input file {given[key]}")
+        if key in seen:
+            raise InputError(f"{out}: given for two outputs")
+        seen[key] = out
+
+
+@contextlib.contextmanager
+def _about(*paths: Path | str | None) -> Iterator[None]:
+    """Prefix the message of an `InputError` raised inside with the files it concerns."""
+    try:
+        yield
+    except InputError as exc:
+        names = ", ".join(str(p) for p in paths if p is not None)
+        raise InputError(f"{names}: {exc}") from None
+
+
+@contextlib.contextmanager
+def _progress(total: int) -> Iterator[Callable[[str], None]]:
+    """A progress bar over `total` named stages, on stderr and only on a terminal.
+
+    Yields ``stage(name)``: call it as each stage starts; it completes the previous one.
+    """
+    console = Console(stderr=True)
+    progress = Progress(SpinnerColumn(), TextColumn("{task.description:<24}"), BarColumn(), MofNCompleteColumn(),
+                        TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal)
+    task = progress.add_task("starting", total=total)
+    started = False
+
+    def stage(name: str) -> None:
+        nonlocal started
+        if started:
+            progress.advance(task)
+        started = True
+        progress.update(task, description=name)
+
+    with progress:
+        yield stage
+
+
+def _load_calibration(calibration: Path | None, camera_matrix: Path | None, projector_matrix: Path | None, *,
+                      camera_size: tuple[int, int] | None, projector_size: tuple[int, int]) -> Calibration | None:
+    """The calibration named by `_calibration_options`, or None when none was given.
+
+    A text pair takes its sizes from `camera_size` (required then) and `projector_size`.
+    """
+    if calibration is not None:
+        if camera_matrix is not None or projector_matrix is not None:
+            raise click.UsageError("give --calibration or --camera-matrix with --projector-matrix, not both")
+        return load_calibration(calibration)
+    if camera_matrix is None and projector_matrix is None:
+        return None
+    if camera_matrix is None or projector_matrix is None:
+        raise click.UsageError("--camera-matrix and --projector-matrix go together")
+    if camera_size is None:
+        raise click.UsageError("--camera WxH is needed with --camera-matrix (a text matrix has no image size)")
+    return load_calibration((camera_matrix, projector_matrix), camera_size=camera_size, projector_size=projector_size)
+
+
+def _calibration_source(calibration: Path | None, camera_matrix: Path | None, projector_matrix: Path | None) -> str:
+    """How to name the calibration's file(s) in a message."""
+    return str(calibration) if calibration is not None else f"{camera_matrix}, {projector_matrix}"
+
+
+def _check_projector(spec: PatternSpec, pattern: Path, calibration: Calibration, source: str) -> None:
+    """The pattern must be made for the calibrated projector."""
+    if tuple(spec.projector_size) != calibration.projector.size:
+        (pw, ph), (cw, ch) = spec.projector_size, calibration.projector.size
+        raise InputError(f"{pattern}: the pattern is for a {pw}x{ph} projector "
+                         f"but the projector of {source} is {cw}x{ch}")
+
+
+def _conditions(*, albedo: str, ambient: float, gamma: float, blur: float, noise: bool, supersample: int,
+                seed: int) -> simulate.Conditions:
+    """Capture conditions: `blur` (px) applies to projector and camera; `gamma` is the projector's."""
+    conditions = simulate.Conditions(albedo=ALBEDOS[albedo](seed), ambient=ambient, projector_gamma=gamma,
+                                     projector_blur_px=blur, camera_blur_px=blur, supersample=supersample, seed=seed)
+    return conditions if noise else conditions.with_(full_well_e=None)
+
+
+def _write_scan(result: ScanResult, *, mat5_prefix: Path | None, ply: Path | None, npz: Path | None) -> list[str]:
+    """Write the outputs asked for; returns how to name them in the summary."""
+    written = []
+    if mat5_prefix is not None:
+        result.save_mat5(mat5_prefix)
+        written.append(f"{mat5_prefix}{{X,Y,Z}}.byt+{{C,I}}.bmp")
+    if ply is not None:
+        result.save_ply(ply)
+        written.append(str(ply))
+    if npz is not None:
+        result.save_npz(npz)
+        written.append(str(npz))
+    return written
+
+
+def _save_truth(path: Path, truth: simulate.GroundTruth) -> None:
+    """Every array of the ground truth in one compressed npz, written atomically."""
+    arrays = {f.name: getattr(truth, f.name) for f in dataclasses.fields(truth)}
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def _mat5_files(prefix: Path | None) -> list[Path]:
+    """The five files of a mat5 prefix (none for None)."""
+    return [] if prefix is None else mat5.mat5_paths(prefix)
+
+
+def _describe(spec: PatternSpec) -> str:
+    """One-phrase description of a pattern spec."""
+    carriers = ", ".join(f"{f:.5g}" for f in spec.carriers)
+    pilot = "" if spec.pilot is None else f" + pilot {spec.pilot:.5g}"
+    w, h = spec.projector_size
+    return (f"{spec.kind} pattern for a {w}x{h} projector, {spec.bits} bits ({spec.stripes} stripes along "
+            f"{spec.orientation}) on carriers {carriers}{pilot} cycles per {spec.orthogonal_lines} px")
+
+
+# --------------------------------------------------------------------------------------------
+# The command group
+# --------------------------------------------------------------------------------------------
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+             epilog="""\b
+Examples:
+  sliscan demo                                    # everything, end to end, on the virtual rig
+  sliscan pattern composite --projector 1024x768 -o cp.png
+  sliscan simulate --pattern cp.json --scene sphere --write-rig rig.json -o capture.png
+  sliscan scan capture.png --pattern cp.json --calibration rig.json --mat5 out/sphere --ply sphere.ply
+  sliscan calibrate G.byt --camera-size 2592x1944 --projector 1024x768 -o rig.json""")
+@click.version_option(__version__, prog_name="sliscan")
+def cli() -> None:
+    """Single-shot structured-light 3D scanning with the Gray code composite pattern."""
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan pattern
+# --------------------------------------------------------------------------------------------
+
+
+@cli.group()
+def pattern() -> None:
+    """Generate a pattern image and its PatternSpec JSON (cp.png -> cp.json)."""
+
+
+_pattern_options = _options(
+    _projector_option(required=True, help="Projector resolution, e.g. 1024x768."),
+    click.option("--thesis", is_flag=True,
+                 help="Start from the thesis's pattern (4 bits on carriers 32, 64, 96, 128 per 1024 px, no "
+                      "pilot) instead of sliscan's best."),
+    click.option("--bits", type=click.IntRange(1, 16),
+                 help="Gray code bits; without --carriers they go on intermodulation-free carriers."),
+    click.option("--carriers", type=FLOATS,
+                 help="One carrier per bit, cycles per projector width, most significant bit first; "
+                      "starts from the thesis's pattern (no pilot, zero code kept)."),
+    click.option("--weights", type=FLOATS, help="Amplitude weight of each bit carrier [all 1]."),
+    click.option("--ap", "a_p", type=click.FloatRange(0, 1), help="Mean drive A_p of eq. 3.1 [0.5]."),
+    click.option("--bp", "b_p", type=POSITIVE,
+                 help="Carrier amplitude B_p of eq. 3.1 [the largest that keeps the pattern in [0, 1]]."),
+    click.option("--gamma", type=POSITIVE, help="Gamma pre-correction of the projector [1: none]."),
+    click.option("--orientation", type=click.Choice(["rows", "columns"]), default="rows", show_default=True,
+                 help="Projector coordinate the stripes code."),
+    click.option("--pilot", type=PilotType(), help="Pilot carrier frequency, or 'none'."),
+    click.option("--skip-zero-code/--keep-zero-code", default=None,
+                 help="Never project the all-zero code (sliscan's best does; the thesis does not)."),
+    click.option("-o", "--output", type=OUTPUT_FILE, required=True,
+                 help="Pattern image (.png or .bmp); the JSON goes beside it."),
+)
+
+def _weight_sum(spec: PatternSpec) -> float:
+    """Sum of the absolute carrier weights (pilot included): the swing of eq. 3.1 per unit B_p."""
+    return float(np.sum(np.abs(spec.all_weights)))
+
+
+def _largest_bp(spec: PatternSpec, reserved: float = 0.0) -> float:
+    """Largest B_p keeping eq. 3.1 in [0, 1] when `reserved` of the swing goes elsewhere."""
+    headroom = min(spec.a_p, 1.0 - spec.a_p) - reserved
+    if headroom <= 0:
+        raise InputError(f"no drive left for the carriers: A_p = {spec.a_p:g} with {reserved:g} taken by the sine")
+    return headroom / _weight_sum(spec)
+
+
+def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: int | None,
+                  carriers: tuple[float, ...] | None, weights: tuple[float, ...] | None, a_p: float | None,
+                  b_p: float | None, gamma: float | None, orientation: str, pilot: float | str | None,
+                  skip_zero_code: bool | None, modified_frequency: float | None = None,
+                  modified_amplitude: float | None = None) -> PatternSpec:
+    """The PatternSpec the `sliscan pattern` options describe (see `pattern composite --help`)."""
+    if thesis and (bits is not None or carriers is not None):
+        raise click.UsageError("--thesis fixes the bits and the carriers; leave out --bits and --carriers")
+    if carriers is not None and bits is not None and bits != len(carriers):
+        raise click.UsageError(f"--bits {bits} needs {bits} carriers, got {len(carriers)}")
+    if thesis or carriers is not None:
+        base = patterns.thesis_spec(projector, orientation=orientation)
+    else:
+        base = patterns.default_spec(projector, orientation=orientation, bits=bits or 4)
+    changes: dict[str, Any] = {"kind": kind}
+    if carriers is not None:
+        changes.update(carriers=carriers, bits=len(carriers), weights=(1.0,) * len(carriers))
+    if pilot == _NO_PILOT:
+        changes["pilot"] = None
+        if carriers is None and base.pilot is not None:  # spread the carriers again without the pilot's slot
+            changes["carriers"] = patterns.spread_carriers(base.bits, base.orthogonal_lines)
+    elif pilot is not None:
+        changes["pilot"] = pilot
+    for name, value in (("weights", weights), ("a_p", a_p), ("gamma", gamma), ("skip_zero_code", skip_zero_code),
+                        ("modified_frequency", modified_frequency)):
+        if value is not None:
+            changes[name] = value
+    spec = base.with_(**changes)
+    if kind == "modified_composite":
+        amplitude = modified_amplitude
+        if amplitude is None:  # one more carrier's worth: B_p with the sine counted as a weight-1 carrier
+            amplitude = _largest_bp(spec) * _weight_sum(spec) / (_weight_sum(spec) + 1)
+        return spec.with_(modified_amplitude=amplitude, b_p=b_p if b_p is not None else _largest_bp(spec, amplitude))
+    if b_p is None and any(v is not None for v in (bits, carriers, weights, a_p, pilot)):
+        b_p = _largest_bp(spec)  # the swing changed: fit B_p again
+    return spec if b_p is None else spec.with_(b_p=b_p)
+
+
+def _write_pattern(output: Path, spec: PatternSpec) -> None:
+    _, json_path = patterns.save_pattern(output, spec)
+    click.echo(f"wrote {output} and {json_path}: {_describe(spec)}")
+
+
+_PATTERN_EPILOG = """\b
+Examples:
+  sliscan pattern {cmd} --projector 1024x768 -o cp.png            # sliscan's best
+  sliscan pattern {cmd} --projector 1024x768 --thesis -o cp.png   # the thesis's
+  sliscan pattern {cmd} --projector 1024x768 --bits 4 --carriers 32,64,96,128 -o cp.png
+  sliscan pattern {cmd} --projector 1280x800 --bits 6 --orientation columns -o cp.png"""
+
+
+@pattern.command("composite", epilog=_PATTERN_EPILOG.format(cmd="composite"))
+@_pattern_options
+def pattern_composite(output: Path, **options: Any) -> None:
+    """The Gray code composite pattern (thesis eq. 3.1).
+
+    With only --projector: the best single-shot pattern sliscan knows (a pilot carrier, no
+    all-zero code, intermodulation-free carriers).  --thesis, or --bits 4 --carriers
+    32,64,96,128, gives the thesis's pattern.
+    """
+    _write_pattern(output, _pattern_spec("composite", **options))
+
+
+@pattern.command("carrier-only", epilog=_PATTERN_EPILOG.format(cmd="carrier-only"))
+@_pattern_options
+def pattern_carrier_only(output: Path, **options: Any) -> None:
+    """Every carrier on everywhere (thesis fig. 3.9): for measuring the carriers' roll-off."""
+    _write_pattern(output, _pattern_spec("carrier_only", **options))
+
+
+@pattern.command("modified", epilog=_PATTERN_EPILOG.format(cmd="modified") + """
+  sliscan pattern modified --projector 1024x768 --thesis --modified-amplitude 0.1 -o mcp.png""")
+@_pattern_options
+@click.option("--modified-frequency", type=POSITIVE, default=15.0, show_default=True,
+              help="Sine along the phase direction, cycles per projector height (section 6.2).")
+@click.option("--modified-amplitude", type=POSITIVE,
+              help="Amplitude of that sine [one carrier's; B_p shrinks to keep the pattern in [0, 1]].")
+def pattern_modified(output: Path, **options: Any) -> None:
+    """The modified composite pattern (thesis section 6.2): composite plus a sine along the phase direction."""
+    _write_pattern(output, _pattern_spec("modified_composite", **options))
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan simulate
+# --------------------------------------------------------------------------------------------
+
+
+#: A mat5 point grid: points (H, W, 3) in mm, valid (H, W) and texture (H, W).
+Grid = tuple[NDArray[np.floating], NDArray[np.bool_], NDArray[np.floating]]
+
+
+def _load_scene(name: str, rig: simulate.Rig) -> tuple[simulate.Surface, Grid | None]:
+    """A built-in scene at the rig's working distance, or a mat5 scan as a surface.
+
+    Returns the surface and, for a mat5 scan, its ``(points, valid, texture)``.
+    """
+    if name in SCENES:
+        return SCENES[name](distance_mm=rig.working_distance_mm), None
+    indicator = mat5.mat5_paths(name)[-1]
+    if not indicator.exists():
+        raise InputError(f"--scene {name}: not a built-in scene ({', '.join(SCENES)}) nor a mat5 prefix "
+                         f"({indicator} not found)")
+    points, valid, texture = mat5.read_mat5(name)
+    with _about(f"{name} (mat5)"):
+        return simulate.Mat5Surface(points.astype(np.float64), valid), (points, valid, texture)
+
+
+@cli.command("simulate", epilog="""\b
+Examples:
+  sliscan simulate --pattern cp.json --scene sphere --write-rig rig.json -o capture.png
+  sliscan simulate --pattern cp.json --scene steps --calibration rig.json --albedo checker -o capture.png
+  sliscan simulate --pattern cp.json --scene out/sphere --camera 640x480 --truth truth.npz -o capture.png
+  sliscan simulate --pattern cp.json --scene out/sphere --calibration rig.json -o capture.png \\
+      --projector-view pv.png --camera-view cv.png""")
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True, help="PatternSpec JSON of the pattern.")
+@click.option("--scene", default="sphere", show_default=True,
+              help=f"{', '.join(SCENES)}, or the PREFIX of a mat5 scan (PREFIXX.byt ...).")
+@_calibration_options
+@_camera_option(help=f"Camera size of the virtual rig (or of --camera-matrix) [{THESIS_CAMERA[0]}x{THESIS_CAMERA[1]}].")
+@click.option("--write-rig", type=OUTPUT_FILE, help="Save the calibration used (JSON).")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Capture image (8-bit PNG).")
+@click.option("--albedo", type=click.Choice(list(ALBEDOS)), default="uniform", show_default=True,
+              help="Surface texture: 0.8 everywhere, smooth random 0.15-1, or a 40 mm checker.")
+@click.option("--ambient", type=click.FloatRange(min=0), default=0.1, show_default=True,
+              help="Ambient light, fraction of the projector's full white.")
+@click.option("--gamma", type=POSITIVE, default=2.2, show_default=True, help="Projector gamma.")
+@click.option("--blur", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Projector and camera blur (Gaussian sigma, px).")
+@click.option("--noise/--no-noise", default=True, show_default=True, help="Shot and read noise.")
+@click.option("--supersample", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Sub-pixels per camera pixel per axis.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the noise and of the smooth albedo.")
+@click.option("--truth", type=OUTPUT_FILE, help="Save the ground truth (points, proj, lit, surface, ...) as npz.")
+@click.option("--projector-view", type=OUTPUT_FILE,
+              help="Save the thesis's projector view (chapter 5) of the scene's points.")
+@click.option("--camera-view", type=OUTPUT_FILE, help="Save the thesis's camera view (chapter 5).")
+def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camera_matrix: Path | None,
+                 projector_matrix: Path | None, camera: tuple[int, int] | None, write_rig: Path | None,
+                 output: Path, truth: Path | None, projector_view: Path | None, camera_view: Path | None,
+                 **physics: Any) -> None:
+    """Render a camera capture of a pattern on a scene with the virtual rig.
+
+    The rig is --calibration (or --camera-matrix/--projector-matrix) if given, else the
+    built-in one: the thesis's set-up with the projector 200 mm above the camera, both aimed at
+    a point 800 mm away.  Scenes are placed at the rig's working distance.
+    """
+    if calibration is not None and camera is not None:
+        raise click.UsageError("--camera sets the virtual rig's size; a calibration JSON has its own")
+    mat5_prefix = None if scene in SCENES else Path(scene)
+    _check_outputs([output, write_rig, truth, projector_view, camera_view],
+                   [pattern_path, calibration, camera_matrix, projector_matrix, *_mat5_files(mat5_prefix)])
+    spec = PatternSpec.load(pattern_path)
+    calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=camera,
+                              projector_size=spec.projector_size)
+    if calib is None:
+        rig = simulate.virtual_rig(camera_size=camera or THESIS_CAMERA, projector_size=spec.projector_size)
+    else:
+        source = _calibration_source(calibration, camera_matrix, projector_matrix)
+        _check_projector(spec, pattern_path, calib, source)
+        with _about(source):
+            rig = simulate.Rig(calib)
+    surface, grid = _load_scene(scene, rig)
+    conditions = _conditions(**physics)
+    projected = patterns.render_pattern(spec)
+    with _progress(2) as stage:
+        stage("render")
+        capture = simulate.render(rig, surface, projected, conditions)
+        stage("write")
+        write_image(output, capture.image)
+        written = [str(output)]
+        if write_rig is not None:
+            rig.calibration.save(write_rig)
+            written.append(str(write_rig))
+        if truth is not None:
+            _save_truth(truth, capture.truth)
+            written.append(str(truth))
+        if grid is None:  # the views of an analytic scene splat its ground-truth points
+            t = capture.truth
+            grid = (t.points, t.surface, np.nan_to_num(t.albedo))
+        views: list[tuple[Path | None, Callable[..., NDArray[np.float32]]]] = [
+            (projector_view, simulate.projector_view), (camera_view, simulate.camera_view)]
+        for path, view in views:
+            if path is not None:
+                write_image(path, view(rig, *grid, projected))
+                written.append(str(path))
+    w, h = rig.camera.size
+    lit = float(np.mean(capture.truth.lit))
+    click.echo(f"wrote {', '.join(written)}: {w}x{h} capture of the {scene} scene ({lit:.0%} of pixels lit)")
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan scan
+# --------------------------------------------------------------------------------------------
+
+
+@cli.command(epilog="""\b
+Examples:
+  sliscan scan capture.png --pattern cp.json --calibration rig.json --mat5 out/sphere --ply sphere.ply
+  sliscan scan capture.png --pattern cp.json --camera-matrix cam.txt --projector-matrix proj.txt --npz scan.npz
+  sliscan scan capture.png --pattern cp.json --calibration rig.json --method bandpass --ply sphere.ply""")
+@click.argument("capture", type=INPUT_FILE)
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
+              help="PatternSpec JSON of the projected pattern.")
+@_calibration_options
+@click.option("--mat5", "mat5_prefix", type=click.Path(path_type=Path),
+              help="Write PREFIX{X,Y,Z}.byt, PREFIXC.bmp, PREFIXI.bmp.")
+@click.option("--ply", type=OUTPUT_FILE, help="Write the valid points as a binary PLY point cloud.")
+@click.option("--npz", type=OUTPUT_FILE, help="Write every array of the scan to one npz file.")
+@click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
+              help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
+def scan(capture: Path, pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
+         projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
+         method: str) -> None:
+    """Reconstruct 3D points from one camera capture of a composite pattern.
+
+    The capture must have the calibrated camera's size.  A --camera-matrix/--projector-matrix
+    pair takes its sizes from the capture and the pattern.  Writes exactly the outputs asked
+    for (creating their folders) and prints the number of points, the completeness of the frame
+    and the seconds per stage.
+    """
+    _check_outputs([*_mat5_files(mat5_prefix), ply, npz], [capture, pattern_path, calibration, camera_matrix,
+                                                             projector_matrix])
+    with _progress(3) as stage:
+        stage("read")
+        t0 = time.perf_counter()
+        spec = PatternSpec.load(pattern_path)
+        image = read_image(capture)
+        h, w = image.shape
+        calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=(w, h),
+                                  projector_size=spec.projector_size)
+        if calib is None:
+            raise click.UsageError("give --calibration rig.json, or --camera-matrix and --projector-matrix")
+        source = _calibration_source(calibration, camera_matrix, projector_matrix)
+        if calib.camera.size != (w, h):
+            cw, ch = calib.camera.size
+            raise InputError(f"{capture}: the capture is {w}x{h} but the camera of {source} is {cw}x{ch}")
+        _check_projector(spec, pattern_path, calib, source)
+        with _about(source):
+            scanner = Scanner(spec, calib, method=method)
+        stage("scan")
+        t1 = time.perf_counter()
+        with _about(capture, f"pattern {pattern_path}"):
+            result = scanner.scan(image)
+        stage("write")
+        t2 = time.perf_counter()
+        written = _write_scan(result, mat5_prefix=mat5_prefix, ply=ply, npz=npz)
+        t3 = time.perf_counter()
+    n = int(result.valid.sum())
+    stages = {"read": t1 - t0, **{k: v for k, v in result.timings.items() if k != "total"}, "write": t3 - t2}
+    times = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
+    wrote = f"wrote {', '.join(written)}" if written else "wrote nothing (give --mat5, --ply or --npz)"
+    click.echo(f"{n} points ({n / result.valid.size:.1%} of the {w}x{h} frame) in {t3 - t0:.2f} s "
+               f"({times}); {wrote}")
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan calibrate
+# --------------------------------------------------------------------------------------------
+
+
+@cli.command(epilog="""\b
+Examples:
+  sliscan calibrate G.byt --camera-size 2592x1944 --projector 1024x768 -o rig.json
+  sliscan calibrate G.txt --camera-size 2592x1944 --projector 1024x768 --method lstsq -o rig.json \\
+      --cam-txt cam.txt --proj-txt proj.txt
+  sliscan calibrate grid.csv --camera-size 640x480 --projector 1024x768 --pixels -o rig.json""")
+@click.argument("g_file", type=INPUT_FILE)
+@_camera_option(required=True, help="Camera image size, e.g. 2592x1944.")
+@_projector_option(required=True, help="Projector size, e.g. 1024x768.")
+@click.option("--method", type=click.Choice(["svd", "lstsq"]), default="svd", show_default=True,
+              help="DLT by SVD (thesis 4.3) or by least squares with m34 = 1 (4.4).")
+@click.option("--pixels", is_flag=True, help="The G file's projector columns are pixels, not phases in radians.")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
+@click.option("--cam-txt", type=OUTPUT_FILE, help="Also write the camera matrix as text (the thesis's cam.txt).")
+@click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
+def calibrate(g_file: Path, camera: tuple[int, int], projector: tuple[int, int], method: str, pixels: bool,
+              output: Path, cam_txt: Path | None, proj_txt: Path | None) -> None:
+    """Calibrate camera and projector from a calibration grid (a G file, thesis 4.3-4.4).
+
+    G_FILE holds one point per row: Xw Yw Zw (mm), xc yc (camera pixels), xp yp (projector
+    phases in radians, x = phase * size / 2pi, or pixels with --pixels); binary .byt (float32)
+    or text.  Prints the reprojection residuals.
+    """
+    _check_outputs([output, cam_txt, proj_txt], [g_file])
+    rows = premat5.read_g(g_file)
+    with _about(g_file):
+        calib = calibrate_points(rows, camera, projector, method=method, phases=not pixels)
+    calib.save(output)
+    written = [str(output)]
+    for path, device in ((cam_txt, calib.camera), (proj_txt, calib.projector)):
+        if path is not None:
+            write_matrix_txt(path, device.matrix)
+            written.append(str(path))
+    res = calib.extra["residuals"]
+    residuals = "; ".join(f"{name} RMS {r['rms_px']:.3g} px, max {r['max_px']:.3g} px" for name, r in res.items())
+    click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} points; reprojection {residuals}")
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan demo
+# --------------------------------------------------------------------------------------------
+
+
+def _demo_specs(which: str, projector: tuple[int, int]) -> dict[str, PatternSpec]:
+    specs = {"thesis": patterns.thesis_spec(projector), "best": patterns.default_spec(projector)}
+    return specs if which == "both" else {which: specs[which]}
+
+
+def _accuracy_table(results: dict[str, tuple[evaluate.Accuracy, float]]) -> Table:
+    """Accuracy figures, one column per pattern."""
+    table = Table(title="sphere scan vs the virtual rig's ground truth")
+    table.add_column("")
+    for name in results:
+        table.add_column(name, justify="right")
+    rows: list[tuple[str, Callable[[evaluate.Accuracy, float], str]]] = [
+        ("stripe accuracy (% of lit px)", lambda a, s: f"{a.stripe_accuracy:.1%}"),
+        ("completeness (% of lit px)", lambda a, s: f"{a.completeness:.1%}"),
+        ("outliers (% of points)", lambda a, s: f"{a.outliers:.2%}"),
+        ("RMS error (mm)", lambda a, s: f"{a.rms_mm:.2f}"),
+        ("median error (mm)", lambda a, s: f"{a.median_mm:.2f}"),
+        ("oracle RMS error (mm)", lambda a, s: f"{a.oracle_rms_mm:.2f}"),
+        ("oracle median error (mm)", lambda a, s: f"{a.oracle_median_mm:.2f}"),
+        ("scan time (s)", lambda a, s: f"{s:.2f}"),
+    ]
+    for label, cell in rows:
+        table.add_row(label, *(cell(*r) for r in results.values()))
+    return table
+
+
+@cli.command(epilog="""\b
+Examples:
+  sliscan demo                                  # thesis sizes, both patterns, into demo-out/
+  sliscan demo --camera 640x480 --out /tmp/demo # small and quick
+  sliscan demo --pattern best --supersample 3 --seed 1""")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("demo-out"),
+              show_default=True, help="Folder for everything the demo writes.")
+@_camera_option(default=f"{THESIS_CAMERA[0]}x{THESIS_CAMERA[1]}", show_default=True, help="Camera size.")
+@_projector_option(default=f"{THESIS_PROJECTOR[0]}x{THESIS_PROJECTOR[1]}", show_default=True,
+                   help="Projector size.")
+@click.option("--pattern", "which", type=click.Choice(["best", "thesis", "both"]), default="both",
+              show_default=True, help="sliscan's best pattern, the thesis's, or both side by side.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the noise and of the albedo.")
+@click.option("--supersample", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Sub-pixels per camera pixel per axis (render time grows with its square).")
+def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: str, seed: int,
+         supersample: int) -> None:
+    """Everything end to end on the built-in virtual rig.
+
+    Builds the thesis's rig, generates the pattern(s), renders the thesis's sphere (245 mm,
+    800 mm away, in front of a wall) under realistic conditions (smooth albedo 0.15-1, ambient
+    10 %, uncorrected projector gamma 2.2, 1 px blur, shot and read noise, 8 bits), scans each
+    capture, writes OUT/rig.json and per pattern OUT/NAME/{pattern.png, pattern.json,
+    capture.png, sphere mat5 files, sphere.ply}, and prints the accuracy against the ground truth.
+    """
+    t0 = time.perf_counter()
+    rig = simulate.virtual_rig(camera_size=camera, projector_size=projector)
+    specs = _demo_specs(which, projector)
+    scene = simulate.sphere_scene()
+    conditions = _conditions(albedo="smooth", ambient=0.1, gamma=2.2, blur=1.0, noise=True,
+                             supersample=supersample, seed=seed)
+    results: dict[str, tuple[evaluate.Accuracy, float]] = {}
+    with _progress(4 * len(specs)) as stage:
+        for name, spec in specs.items():
+            stage(f"{name}: render")
+            capture = simulate.render(rig, scene, patterns.render_pattern(spec), conditions)
+            stage(f"{name}: scan")
+            t_scan = time.perf_counter()
+            result = Scanner(spec, rig.calibration).scan(capture.image)
+            t_scan = time.perf_counter() - t_scan
+            stage(f"{name}: evaluate")
+            results[name] = (evaluate.accuracy(result, capture.truth, spec, rig.calibration), t_scan)
+            stage(f"{name}: write")
+            folder = out / name
+            patterns.save_pattern(folder / "pattern.png", spec)
+            write_image(folder / "capture.png", capture.image)
+            _write_scan(result, mat5_prefix=folder / "sphere", ply=folder / "sphere.ply", npz=None)
+        rig.calibration.save(out / "rig.json")
+    Console().print(_accuracy_table(results))
+    w, h = camera
+    click.echo(f"wrote {out}/rig.json and {', '.join(f'{out}/{n}/' for n in specs)}: {w}x{h} sphere demo "
+               f"in {time.perf_counter() - t0:.1f} s")
+
+
+# --------------------------------------------------------------------------------------------
+# Entry point
+# --------------------------------------------------------------------------------------------
+
+
+def _fail(message: str) -> NoReturn:
+    click.echo(f"error: {' '.join(message.split())}", err=True)
+    sys.exit(BAD_INPUT)
+
+
+def main(args: Sequence[str] | None = None) -> None:
+    """Run the ``sliscan`` command; bad input ends in one line ``error: ...`` and exit status 2.
+
+    Parameters
+    ----------
+    args : sequence of str, optional
+        Command-line arguments; default ``sys.argv[1:]``.
+    """
+    try:
+        status = cli.main(args=args, prog_name="sliscan", standalone_mode=False)
+    except click.Abort:
+        click.echo("error: interrupted", err=True)
+        sys.exit(130)
+    except click.UsageError as exc:
+        where = f"{exc.ctx.command_path}: " if exc.ctx is not None else ""
+        hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+        _fail(f"{where}{exc.format_message()}{hint}")
+    except click.ClickException as exc:
+        _fail(exc.format_message())
+    except InputError as exc:
+        _fail(str(exc))
+    except OSError as exc:
+        _fail(f"{exc.filename}: {exc.strerror}" if exc.filename else str(exc))
+    sys.exit(status if isinstance(status, int) else 0)

@@ -1,0 +1,255 @@
+"""The ``sliscan`` command as a user runs it: one subprocess per command (DESIGN.md, "The command line").
+
+Everything runs on a small virtual rig (a 640x480 camera, the thesis's 1024x768 projector) so
+each command takes a few seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sliscan import patterns, simulate
+from sliscan.formats import mat5, npz, ply, premat5
+from sliscan.formats.calibration import read_matrix_txt, write_matrix_txt
+from sliscan.reconstruct import triangulate_points
+from sliscan.types import Calibration, PatternSpec
+
+CAMERA = (640, 480)
+PROJECTOR = (1024, 768)
+CAMERA_ARG = "640x480"
+PROJECTOR_ARG = "1024x768"
+
+
+def sliscan(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m sliscan ARGS`` in `cwd`, no stdin, capturing its output."""
+    return subprocess.run([sys.executable, "-m", "sliscan", *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, stdin=subprocess.DEVNULL, timeout=300)
+
+
+def ok(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """Run a command that must succeed with a one-line summary on stdout."""
+    result = sliscan(*args, cwd=cwd)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip(), "a command prints a summary of what it wrote"
+    return result
+
+
+def read_png(path: Path) -> np.ndarray:
+    """An image file as stored (8-bit stays uint8)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert image is not None, f"{path} is not an image"
+    return image
+
+
+def listing(folder: Path) -> dict[str, bytes]:
+    """Every file under `folder` and its content."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def plane(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """pattern -> simulate (writing the rig) -> scan of the plane scene; the folder and scan's stdout."""
+    folder = tmp_path_factory.mktemp("plane")
+    ok("pattern", "composite", "--projector", PROJECTOR_ARG, "-o", "cp.png", cwd=folder)
+    ok("simulate", "--pattern", "cp.json", "--scene", "plane", "--camera", CAMERA_ARG, "--supersample", "1",
+       "--write-rig", "rig.json", "--truth", "truth.npz", "-o", "capture.png", cwd=folder)
+    scan = ok("scan", "capture.png", "--pattern", "cp.json", "--calibration", "rig.json", "--mat5", "out/plane",
+              "--ply", "out/plane.ply", "--npz", "out/plane.npz", cwd=folder)
+    return folder, scan.stdout
+
+
+def test_pattern_with_only_the_projector_is_the_default_spec(plane: tuple[Path, str]) -> None:
+    folder, _ = plane
+    spec = PatternSpec.load(folder / "cp.json")
+    assert spec == patterns.default_spec(PROJECTOR).with_(image="cp.png")
+    image = read_png(folder / "cp.png")
+    np.testing.assert_array_equal(image, np.round(patterns.render_pattern(spec) * 255).astype(np.uint8))
+
+
+def test_pattern_thesis_flag_and_thesis_carriers_agree(tmp_path: Path) -> None:
+    ok("pattern", "composite", "--projector", PROJECTOR_ARG, "--thesis", "-o", "a.png", cwd=tmp_path)
+    ok("pattern", "composite", "--projector", PROJECTOR_ARG, "--bits", "4", "--carriers", "32,64,96,128",
+       "-o", "b.png", cwd=tmp_path)
+    thesis = patterns.thesis_spec(PROJECTOR)
+    assert PatternSpec.load(tmp_path / "a.json") == thesis.with_(image="a.png")
+    assert PatternSpec.load(tmp_path / "b.json") == thesis.with_(image="b.png")
+
+
+def test_pattern_modified_stays_in_range(tmp_path: Path) -> None:
+    ok("pattern", "modified", "--projector", PROJECTOR_ARG, "--thesis", "-o", "m.png", cwd=tmp_path)
+    spec = PatternSpec.load(tmp_path / "m.json")
+    assert spec.kind == "modified_composite" and spec.modified_amplitude > 0
+    low, high = patterns.pattern_range(spec)
+    assert low >= 0 and high <= 1 + 1e-12
+
+
+def test_scan_of_the_plane(plane: tuple[Path, str]) -> None:
+    folder, stdout = plane
+    points, valid, _ = mat5.read_mat5(folder / "out/plane")
+    assert valid.shape == CAMERA[::-1]
+    n_valid = int(valid.sum())
+    assert n_valid > 0.5 * valid.size
+    assert f"{n_valid} points" in stdout and len(stdout.splitlines()) == 1
+    ply_points, _ = ply.read_point_cloud(folder / "out/plane.ply")
+    assert len(ply_points) == n_valid
+    result = npz.read_scan_npz(folder / "out/plane.npz")
+    np.testing.assert_array_equal(result.valid, valid)
+
+    # The plane lies at the rig's working distance (800 mm).  A decoded pixel is triangulated
+    # from its stripe's centre row, so it lies at most half a stripe's depth from the plane:
+    # measure that depth along the central camera ray, between the two rows bounding its stripe.
+    spec = PatternSpec.load(folder / "cp.json")
+    calibration = Calibration.load(folder / "rig.json")
+    xc, yc = (CAMERA[0] - 1) / 2, (CAMERA[1] - 1) / 2
+    yp = simulate.Rig(calibration).projector.project([0.0, 0.0, 800.0])[0][1]
+    stripe = patterns.stripe_of_line(yp, spec)
+    edges = (stripe + np.array([0.0, 1.0])) * spec.phase_lines / spec.stripes - 0.5
+    z_edges = triangulate_points([xc, xc], [yc, yc], edges, calibration)[:, 2]
+    half_stripe_mm = abs(z_edges[1] - z_edges[0]) / 2
+    assert 1 < half_stripe_mm < 100
+    assert abs(float(np.median(points[valid][:, 2])) - 800.0) < half_stripe_mm
+
+
+def test_simulate_writes_the_ground_truth(plane: tuple[Path, str]) -> None:
+    folder, _ = plane
+    with np.load(folder / "truth.npz") as truth:
+        assert {"points", "proj", "lit", "surface"} <= set(truth.files)
+        assert truth["points"].shape == (*CAMERA[::-1], 3)
+        np.testing.assert_allclose(truth["points"][truth["surface"]][:, 2], 800.0, rtol=0, atol=1e-3)  # float32 mm
+    capture = read_png(folder / "capture.png")
+    assert capture.dtype == np.uint8 and capture.shape == CAMERA[::-1]
+
+
+def test_scan_with_text_matrices_matches_the_json(plane: tuple[Path, str], tmp_path: Path) -> None:
+    folder, _ = plane
+    calibration = Calibration.load(folder / "rig.json")
+    write_matrix_txt(tmp_path / "cam.txt", calibration.camera.matrix)
+    write_matrix_txt(tmp_path / "proj.txt", calibration.projector.matrix)
+    ok("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--camera-matrix", "cam.txt",
+       "--projector-matrix", "proj.txt", "--npz", "scan.npz", cwd=tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cam.txt", "proj.txt", "scan.npz"]
+    from_text = npz.read_scan_npz(tmp_path / "scan.npz")
+    from_json = npz.read_scan_npz(folder / "out/plane.npz")
+    np.testing.assert_array_equal(from_text.valid, from_json.valid)
+    # cam.txt keeps 10 significant digits: points agree far below a micrometre
+    np.testing.assert_allclose(from_text.points, from_json.points, rtol=0, atol=1e-3, equal_nan=True)
+
+
+@pytest.mark.parametrize("method", ["svd", "lstsq"])
+def test_calibrate_recovers_the_rig(tmp_path: Path, method: str) -> None:
+    rig = simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR)
+    rng = np.random.default_rng(0)
+    volume = ([-150.0, -100.0, 700.0], [150.0, 100.0, 900.0])
+    world = rng.uniform(*volume, (60, 3))
+    cam = rig.calibration.camera.project(world)
+    proj = rig.calibration.projector.project(world)
+    phases = np.c_[premat5.pixel_to_phase(proj[:, 0], PROJECTOR[0]), premat5.pixel_to_phase(proj[:, 1], PROJECTOR[1])]
+    premat5.write_g(tmp_path / "G.byt", np.c_[world, cam, phases])
+    result = ok("calibrate", "G.byt", "--camera-size", CAMERA_ARG, "--projector", PROJECTOR_ARG, "--method", method,
+                "-o", "rig.json", "--cam-txt", "cam.txt", "--proj-txt", "proj.txt", cwd=tmp_path)
+    assert "RMS" in result.stdout and len(result.stdout.splitlines()) == 1
+    calibration = Calibration.load(tmp_path / "rig.json")
+    # G.byt stores float32: about 1e-4 px of rounding in every coordinate, so residuals stay
+    # far below a thousandth of a pixel and fresh points reproject within 1e-2 px.
+    for name, truth in (("camera", rig.calibration.camera), ("projector", rig.calibration.projector)):
+        assert calibration.extra["residuals"][name]["rms_px"] < 1e-3
+        device = getattr(calibration, name)
+        fresh = rng.uniform(*volume, (100, 3))
+        np.testing.assert_allclose(device.project(fresh), truth.project(fresh), rtol=0, atol=1e-2)
+    np.testing.assert_allclose(read_matrix_txt(tmp_path / "cam.txt"), calibration.camera.matrix, rtol=1e-9)
+    np.testing.assert_allclose(read_matrix_txt(tmp_path / "proj.txt"), calibration.projector.matrix, rtol=1e-9)
+
+
+def test_demo_runs_end_to_end(tmp_path: Path) -> None:
+    result = ok("demo", "--camera", CAMERA_ARG, "--out", "demo", cwd=tmp_path)
+    assert "stripe accuracy" in result.stdout and "thesis" in result.stdout and "best" in result.stdout
+    out = tmp_path / "demo"
+    assert (out / "rig.json").is_file()
+    for name in ("thesis", "best"):
+        mat5_files = [p.name for p in mat5.mat5_paths("sphere")]
+        for file in ["pattern.png", "pattern.json", "capture.png", "sphere.ply", *mat5_files]:
+            assert (out / name / file).is_file(), f"{name}/{file}"
+
+
+@pytest.mark.parametrize("command", [[], ["pattern", "composite"], ["pattern", "carrier-only"], ["pattern", "modified"],
+                                     ["simulate"], ["scan"], ["calibrate"], ["demo"]])
+def test_help_has_examples(tmp_path: Path, command: list[str]) -> None:
+    result = sliscan(*command, "--help", cwd=tmp_path)
+    assert result.returncode == 0 and "Examples:" in result.stdout
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input: exit 2, one line on stderr naming the file, nothing written
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bad_inputs(plane: tuple[Path, str], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder with the plane run's good inputs and one broken file per failure mode."""
+    source, _ = plane
+    folder = tmp_path_factory.mktemp("bad")
+    for name in ("cp.json", "cp.png", "rig.json", "capture.png"):
+        shutil.copy(source / name, folder / name)
+    capture = read_png(folder / "capture.png")
+    cv2.imwrite(str(folder / "small.png"), cv2.resize(capture, (CAMERA[0] // 2, CAMERA[1] // 2)))
+    flat = np.random.default_rng(0).normal(128, 2, capture.shape).clip(0, 255).astype(np.uint8)
+    cv2.imwrite(str(folder / "flat.png"), flat)  # a capture without any carrier
+    rig = json.loads((folder / "rig.json").read_text())
+    rig["camera"]["matrix"][1][2] = float("nan")
+    (folder / "nan.json").write_text(json.dumps(rig))
+    rig = json.loads((folder / "rig.json").read_text())
+    rig["projector"]["matrix"] = [row[:3] for row in rig["projector"]["matrix"]]
+    (folder / "shape.json").write_text(json.dumps(rig))
+    PatternSpec.load(folder / "cp.json").with_(projector_size=(800, 600)).save(folder / "cp800.json")
+    premat5.write_g(folder / "G.byt", np.ones((10, 7)))
+    (folder / "short.byt").write_bytes((folder / "G.byt").read_bytes()[:-5])
+    return folder
+
+
+def scan_args(capture: str = "capture.png", pattern: str = "cp.json", calibration: str = "rig.json",
+              *outputs: str) -> tuple[str, ...]:
+    """Arguments of ``sliscan scan`` (writing a PLY unless `outputs` are given)."""
+    return ("scan", capture, "--pattern", pattern, "--calibration", calibration, *(outputs or ("--ply", "o.ply")))
+
+
+BAD_CASES: dict[str, tuple[tuple[str, ...], str]] = {
+    "capture size differs from the camera": (scan_args("small.png"), "small.png"),
+    "no carriers in the capture": (scan_args("flat.png"), "flat.png"),
+    "pattern for another projector": (scan_args(pattern="cp800.json"), "cp800.json"),
+    "calibration with NaN": (scan_args(calibration="nan.json"), "nan.json"),
+    "calibration matrix of the wrong shape": (scan_args("capture.png", "cp.json", "shape.json", "--mat5", "o/scan"),
+                                              "shape.json"),
+    "missing capture": (scan_args("missing.png"), "missing.png"),
+    "output onto the capture": (scan_args("capture.png", "cp.json", "rig.json", "--npz", "capture.png"), "capture.png"),
+    "simulate onto its calibration": (("simulate", "--pattern", "cp.json", "--calibration", "rig.json",
+                                       "--write-rig", "rig.json", "-o", "o.png"), "rig.json"),
+    "simulate with a NaN calibration": (("simulate", "--pattern", "cp.json", "--calibration", "nan.json",
+                                         "-o", "o.png"), "nan.json"),
+    "truncated G file": (("calibrate", "short.byt", "--camera-size", CAMERA_ARG, "--projector", PROJECTOR_ARG,
+                          "-o", "o.json"), "short.byt"),
+    "bad WxH": (("pattern", "composite", "--projector", "1024by768", "-o", "o.png"), "--projector"),
+    "unknown scene": (("simulate", "--pattern", "cp.json", "--scene", "sphre", "-o", "o.png"), "sphre"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_CASES)
+def test_bad_input_is_one_line_and_writes_nothing(bad_inputs: Path, tmp_path: Path, case: str) -> None:
+    folder = tmp_path / "run"
+    shutil.copytree(bad_inputs, folder)
+    before = listing(folder)
+    args, name = BAD_CASES[case]
+    result = sliscan(*args, cwd=folder)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and name in lines[0], result.stderr
+    assert result.stdout == ""
+    assert listing(folder) == before  # nothing written, no input touched, no temporary left behind
+
