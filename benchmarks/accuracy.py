@@ -30,15 +30,20 @@ SCENES = {
 
 
 def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns.PatternSpec]:
-    """The patterns compared: the thesis's, sliscan's default, and more bits."""
+    """The patterns compared: the thesis's, sliscan's default, and the same with more bits.
+
+    More bits use carriers spread evenly up to the thesis's highest (an 8-pixel period in
+    the projector, which the default rig's camera resolves with 2.5 pixels per projector
+    pixel), so the window grows with the number of bits.
+    """
     width = projector[0]
     specs = {"thesis 4-bit": patterns.thesis_spec(projector), "sliscan 4-bit": patterns.default_spec(projector)}
     if not quick:
         for bits in (6, 8):
-            carriers = patterns.spread_carriers(bits, width, highest=width / 6)
+            carriers = tuple(k * width / 8 / bits for k in range(1, bits + 1))
             specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
-                projector_size=projector, bits=bits, carriers=carriers, weights=(1.0,) * bits,
-                a_p=0.5, b_p=0.5 / bits)
+                projector_size=projector, bits=bits, carriers=carriers, weights=(1.0,) * bits, a_p=0.5, b_p=0.5 / bits)
+            specs[f"sliscan {bits}-bit"] = patterns.default_spec(projector, bits=bits)
     return specs
 
 

@@ -241,7 +241,7 @@ def default_spec(projector_size: tuple[int, int] = (1024, 768), **changes) -> Pa
     orientation = changes.get("orientation", "rows")
     width = projector_size[0] if orientation == "rows" else projector_size[1]
     bits = int(changes.pop("bits", 4))
-    carriers = tuple(reversed(scale_carriers(tuple(32.0 * k for k in range(1, bits + 1)), width)))
+    carriers = tuple(reversed(scale_carriers(tuple(128.0 * k / bits for k in range(1, bits + 1)), width)))
     base = dict(kind="composite", projector_size=tuple(projector_size), bits=bits, carriers=carriers,
                 weights=(1.0,) * bits, skip_zero_code=True, a_p=0.5, b_p=0.5 / bits)
     base.update(changes)

@@ -53,6 +53,24 @@ def inside_projector(points: NDArray[np.floating], calibration: Calibration, spe
     return ok & (across > -0.5 - margin) & (across < lines - 0.5 + margin)
 
 
+def device_centre(matrix: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Optical centre (mm) of a 3x4 projection matrix: its right null vector."""
+    _, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    return vt[-1, :3] / vt[-1, 3]
+
+
+def triangulation_angle(points: NDArray[np.floating], calibration: Calibration) -> NDArray[np.float64]:
+    """Angle (degrees) between the camera's and the projector's rays at each point.
+
+    Depth precision falls with this angle, and a wrong stripe on a ray almost parallel to its
+    plane lands metres away: points under a few degrees are not measurements.
+    """
+    a = points - device_centre(calibration.camera.matrix)
+    b = points - device_centre(calibration.projector.matrix)
+    cos = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
 @dataclass
 class Scanner:
     """A reusable single-shot scanner for one pattern and one calibrated rig.
@@ -69,6 +87,9 @@ class Scanner:
         Keyword arguments for `sliscan.decode.decode` (thresholds).
     reuse_carriers : bool
         Detect the carriers in the first frame and reuse them for later frames.
+    min_angle_deg : float
+        Points whose camera and projector rays meet at less than this angle are dropped
+        (`triangulation_angle`).
 
     Examples
     --------
@@ -87,6 +108,7 @@ class Scanner:
     method: str = "window"
     decode_options: dict[str, Any] = field(default_factory=dict)
     reuse_carriers: bool = False
+    min_angle_deg: float = 2.0
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -127,6 +149,8 @@ class Scanner:
         points = triangulate(decoded.proj_map, self.calibration, orientation=self.spec.orientation,
                              valid=decoded.valid)
         valid = decoded.valid & inside_projector(points, self.calibration, self.spec)
+        with np.errstate(invalid="ignore"):
+            valid &= triangulation_angle(points, self.calibration) >= self.min_angle_deg
         points[~valid] = np.nan
         t3 = time.perf_counter()
         timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
