@@ -9,6 +9,7 @@ noise, 8 bits), render a capture, scan it and compare with the ground truth
 
     python benchmarks/accuracy.py                       # thesis sizes: 2592x1944 camera
     python benchmarks/accuracy.py --camera 1296x972 --seeds 1 --quick
+    python benchmarks/accuracy.py --patterns "sliscan 6-bit,sliscan 8-bit" --scenes sphere
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ def main() -> None:
     parser.add_argument("--projector", default="1024x768")
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--quick", action="store_true", help="only the 4-bit patterns")
+    parser.add_argument("--patterns", default="", help="comma-separated pattern names to keep (default: all)")
     parser.add_argument("--scenes", default=",".join(SCENES))
     parser.add_argument("--albedo", default="smooth,checker")
     parser.add_argument("--methods", default="window,bandpass")
@@ -73,7 +75,10 @@ def main() -> None:
     header = (f"{'pattern':22s} {'decoder':9s} {'scene':7s} {'albedo':8s} {'seed':>4s} {'stripe%':>8s} "
               f"{'complete%':>9s} {'outlier%':>8s} {'rms mm':>8s} {'med mm':>7s} {'oracle med':>10s} {'s':>5s}")
     print(header)
+    keep = [p for p in args.patterns.split(",") if p]
     for name, spec in pattern_specs(projector, args.quick).items():
+        if keep and name not in keep:
+            continue
         image = patterns.render_pattern(spec)
         for scene_name in args.scenes.split(","):
             scene = SCENES[scene_name]()
