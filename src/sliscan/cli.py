@@ -317,13 +317,14 @@ def pattern() -> None:
 _pattern_options = _options(
     _projector_option(required=True, help="Projector resolution, e.g. 1024x768."),
     click.option("--thesis", is_flag=True,
-                 help="Start from the thesis's pattern (4 bits on carriers 32, 64, 96, 128 per 1024 px, no "
-                      "pilot) instead of sliscan's best."),
+                 help="Start from the thesis's pattern (4 bits on carriers 32, 64, 96, 128 per 1024 px, zero "
+                      "code kept) instead of sliscan's best."),
     click.option("--bits", type=click.IntRange(1, 16),
-                 help="Gray code bits; without --carriers they go on intermodulation-free carriers."),
+                 help="Gray code bits; without --carriers they go on carriers spread evenly up to an 8-pixel "
+                      "period, the most significant bit on the highest."),
     click.option("--carriers", type=FLOATS,
                  help="One carrier per bit, cycles per projector width, most significant bit first; "
-                      "starts from the thesis's pattern (no pilot, zero code kept)."),
+                      "starts from the thesis's pattern (zero code kept)."),
     click.option("--weights", type=FLOATS, help="Amplitude weight of each bit carrier [all 1]."),
     click.option("--ap", "a_p", type=click.FloatRange(0, 1), help="Mean drive A_p of eq. 3.1 [0.5]."),
     click.option("--bp", "b_p", type=POSITIVE,
@@ -370,8 +371,6 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
         changes.update(carriers=carriers, bits=len(carriers), weights=(1.0,) * len(carriers))
     if pilot == _NO_PILOT:
         changes["pilot"] = None
-        if carriers is None and base.pilot is not None:  # spread the carriers again without the pilot's slot
-            changes["carriers"] = patterns.spread_carriers(base.bits, base.orthogonal_lines)
     elif pilot is not None:
         changes["pilot"] = pilot
     for name, value in (("weights", weights), ("a_p", a_p), ("gamma", gamma), ("skip_zero_code", skip_zero_code),
@@ -407,9 +406,9 @@ Examples:
 def pattern_composite(output: Path, **options: Any) -> None:
     """The Gray code composite pattern (thesis eq. 3.1).
 
-    With only --projector: the best single-shot pattern sliscan knows (a pilot carrier, no
-    all-zero code, intermodulation-free carriers).  --thesis, or --bits 4 --carriers
-    32,64,96,128, gives the thesis's pattern.
+    With only --projector: the best single-shot pattern sliscan knows (the thesis's carriers
+    with the most significant bit on the highest, no all-zero code).  --thesis, or --bits 4
+    --carriers 32,64,96,128, gives the thesis's pattern.
     """
     _write_pattern(output, _pattern_spec("composite", **options))
 
