@@ -9,12 +9,14 @@ Two demodulators share one output type, `Demodulated`:
 * `demodulate_bandpass` is the thesis's: per carrier a Butterworth band-pass along the line
   with the other carriers notched, applied to the one-sided spectrum (the analytic signal,
   eqs. 3.3-3.4), whose magnitude is the envelope.
-* `demodulate_window` (the default) fits the carriers in a sliding window of exactly one
-  period of the carriers' common spacing, where they are orthogonal, so the fit is a running
-  correlation computed with cumulative sums.  Each pixel takes the window placement (ending
-  at, centred on, or starting at the pixel) that the carrier model explains best, so a window
-  never needs to straddle a depth edge, a shadow border or an albedo edge when a clean one
-  exists on either side: this is what keeps neighbours' light out of a pixel's envelopes.
+* `demodulate_window` (the default) divides each line by its local mean (the albedo), then
+  fits a DC, a ramp and every carrier by least squares in a sliding window of one period of
+  the carriers' common spacing (where the carriers are orthogonal), with every sum taken from
+  cumulative sums.  Each pixel takes the window placement (ending at, centred on, or starting
+  at the pixel) that the model explains best, so a window need not straddle a depth edge, a
+  shadow border or an albedo edge when a clean one exists on either side: this is what keeps
+  neighbours' light out of a pixel's envelopes.  Each line has its own carrier frequencies
+  (`detect_carriers` measures them band by band) and a window of a whole number of periods.
 
 Frequencies are in cycles per camera pixel along the carrier direction (camera `x` for the
 ``rows`` orientation, camera `y` for ``columns``).
@@ -48,7 +50,7 @@ class Carriers:
     line_scale : (H,) float64 array or None
         The scale of each line (row for the ``rows`` orientation): a projector pitched toward
         the camera's axis magnifies its pattern differently at the top and the bottom of the
-        frame (a few per cent), enough to drift a carrier's phase by a fair part of a cycle
+        frame (up to ~10 % on the virtual rig), enough to drift a carrier's phase by a fair part of a cycle
         across the window.  None: `scale` everywhere.
     """
 
