@@ -93,3 +93,23 @@ def test_scan_does_not_modify_input(small_rig):
     assert np.all(np.isnan(result.points[~result.valid]))
     # the plane at 800 mm: points within one stripe's depth (~60 mm here) of it
     assert np.nanmedian(np.abs(result.points[..., 2] - 800)) < 30
+
+
+def test_refine_borders_moves_a_biased_border_to_the_local_midpoint():
+    """A border between stripes 4 and 5 whose changing bit reads 1.3 above and 0.2 below (a
+    bright region: the frame-wide 0.5 threshold puts the border too low): the local midpoint
+    0.75 is crossed at the true border, row 20."""
+    from sliscan.decode import refine_borders
+
+    spec = patterns.thesis_spec((1024, 768))
+    rows = np.arange(40, dtype=np.float32)
+    changing = 0.2 + 1.1 / (1 + np.exp((rows - 19.5) / 2.0))  # blurred step, half way at 19.5
+    codes = patterns.stripe_codes(spec)
+    bit = spec.bits - 1 - int(np.log2(codes[4] ^ codes[5]))
+    levels = np.zeros((spec.bits, 40, 3), np.float32)
+    for n in range(spec.bits):
+        levels[n] = patterns.code_bits(codes[4], spec.bits)[n]
+    levels[bit] = changing[:, None]
+    stripe = np.where(levels[bit] >= 0.5, 4, 5)  # the frame-wide decision: border at row 23
+    refined = refine_borders(stripe, np.ones_like(stripe, bool), levels, spec, reach=10)
+    assert np.array_equal(refined[:, 0], np.where(rows < 20, 4, 5))

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sliscan.demodulate import Demodulated
-from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center
+from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
 from sliscan.types import PatternSpec
 
 
@@ -189,6 +189,48 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
     return valid & (agree >= min_share * total)
 
 
+def _shift(a: NDArray, offset: int, axis: int, fill: object) -> NDArray:
+    """`a` moved by `offset` along `axis` (out[i] = a[i + offset]), `fill` where it runs out."""
+    out = np.full_like(a, fill)
+    src = [slice(None)] * a.ndim
+    dst = [slice(None)] * a.ndim
+    n = a.shape[axis]
+    if offset >= 0:
+        src[axis], dst[axis] = slice(offset, n), slice(0, n - offset)
+    else:
+        src[axis], dst[axis] = slice(0, n + offset), slice(-offset, n)
+    out[tuple(dst)] = a[tuple(src)]
+    return out
+
+
+def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels: NDArray[np.float32],
+                   spec: PatternSpec, *, reach: int) -> NDArray[np.int64]:
+    """Re-decide the pixels between two neighbouring stripes at their local midpoint.
+
+    Along the phase direction a pixel `reach` lines before and one `reach` lines after it
+    show the two stripes of a border and the level the changing bit has on each side, right
+    there; the pixel belongs to the side whose level its own is nearer to.  The frame-wide
+    0.5 threshold moves the border by several pixels where the local levels differ from the
+    frame's (ambient light, roll-off); this puts it back where the blurred step is half way.
+    """
+    axis = 0 if spec.orientation == "rows" else 1
+    s = np.where(valid, stripe, -10).astype(np.int64)
+    before, after = _shift(s, -reach, axis, -10), _shift(s, reach, axis, -10)
+    border = valid & (before >= 0) & (after >= 0) & (np.abs(before - after) == 1) & ((s == before) | (s == after))
+    if not border.any():
+        return stripe.astype(np.int64)
+    codes = stripe_codes(spec)
+    changed = codes[np.clip(before, 0, None)] ^ codes[np.clip(after, 0, None)]
+    bit = spec.bits - 1 - np.floor(np.log2(np.maximum(changed, 1))).astype(np.int64)
+    bit = np.clip(bit, 0, spec.bits - 1)
+    own = np.take_along_axis(levels, bit[None], axis=0)[0]
+    level_before = np.take_along_axis(_shift(levels, -reach, axis + 1, np.nan), bit[None], axis=0)[0]
+    level_after = np.take_along_axis(_shift(levels, reach, axis + 1, np.nan), bit[None], axis=0)[0]
+    nearer_before = np.abs(own - level_before) <= np.abs(own - level_after)
+    decided = border & np.isfinite(level_before) & np.isfinite(level_after)
+    return np.where(decided, np.where(nearer_before, before, after), stripe).astype(np.int64)
+
+
 def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclear: NDArray[np.bool_],
                       spec: PatternSpec) -> NDArray[np.bool_]:
     """True where exactly one bit is unclear and flipping it gives an adjacent stripe.
@@ -206,7 +248,8 @@ def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclea
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
            min_confidence: float = 0.1, min_snr: float = 3.0, stripe_borders: bool = True, max_residual: float = 0.6,
-           max_misfit: float = 0.25, zero_code_dc: float = 0.6, neighbour_radius: int = 3) -> Decoded:
+           max_misfit: float = 0.25, zero_code_dc: float = 0.6, neighbour_radius: int = 3,
+           border_reach: int = 10) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
     Parameters
@@ -233,6 +276,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     zero_code_dc : float
         For patterns that project the all-zero code: the smallest DC, relative to the
         adjacent stripe 1, of a pixel taken as the lit zero stripe (see `_zero_stripe`).
+    border_reach : int
+        Lines before and after a pixel that `refine_borders` compares it with; 0 skips it.
     neighbour_radius : int
         Drop valid pixels that disagree with most valid pixels within this many pixels
         (`agrees_with_neighbours`); 0 keeps them.
@@ -267,6 +312,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         lit, valid, stripe = lit | zero, valid | zero, np.where(zero, 0, stripe)
     if demod.misfit is not None:
         valid &= demod.misfit <= max_misfit
+    if border_reach:
+        stripe = refine_borders(stripe, valid, levels, spec, reach=border_reach)
     if neighbour_radius:
         valid = agrees_with_neighbours(stripe, valid, radius=neighbour_radius)
     stripe = np.where(valid, stripe, -1).astype(np.int16)
