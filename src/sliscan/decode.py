@@ -9,7 +9,10 @@ what the same window of the capture says about the light reaching that pixel:
 * without one (the thesis's pattern), by the local DC, which still carries the ambient light.
 
 Each bit's "off" and "on" levels are then estimated from the capture itself (two-means on the
-lit pixels), so crosstalk and roll-off shift the threshold instead of flipping bits.
+lit pixels), so crosstalk and roll-off shift the threshold instead of flipping bits; pixels
+between two stripes are re-decided at the changing bit's local midpoint (`refine_borders`),
+and isolated decisions that disagree with their neighbours are dropped
+(`agrees_with_neighbours`).
 
 The all-zero code projects no carrier at all: in one frame it looks like shadow.  Patterns with
 ``skip_zero_code`` never project it, so unmodulated pixels are shadow.  Otherwise (the
