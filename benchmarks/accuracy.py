@@ -67,6 +67,7 @@ def main() -> None:
     parser.add_argument("--albedo", default="smooth,checker")
     parser.add_argument("--methods", default="window,bandpass")
     parser.add_argument("--json", default="benchmarks/accuracy.json")
+    parser.add_argument("--markdown", help="also write the table as Markdown (as in the README) to this file")
     args = parser.parse_args()
     camera = tuple(int(v) for v in args.camera.split("x"))
     projector = tuple(int(v) for v in args.projector.split("x"))
@@ -98,6 +99,20 @@ def main() -> None:
                               f"{100 * acc.outliers:8.2f} {acc.rms_mm:8.2f} {acc.median_mm:7.2f} "
                               f"{acc.oracle_median_mm:10.2f} {seconds:5.1f}", flush=True)
     Path(args.json).write_text(json.dumps({"camera": camera, "projector": projector, "rows": rows}, indent=1))
+    if args.markdown:
+        Path(args.markdown).write_text(markdown_table(rows))
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """The rows as the README's Markdown table."""
+    lines = ["| pattern | decoder | scene | albedo | stripe accuracy | completeness | outliers | RMS (mm) "
+             "| median (mm) | oracle median (mm) | scan (s) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        decoder = "sliscan window" if r["decoder"] == "window" else "thesis band-pass"
+        lines.append(f"| {r['pattern']} | {decoder} | {r['scene']} | {r['albedo']} | {100 * r['stripe_accuracy']:.1f} % "
+                     f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {r['rms_mm']:.1f} "
+                     f"| {r['median_mm']:.2f} | {r['oracle_median_mm']:.2f} | {r['seconds']:.1f} |")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
