@@ -2,6 +2,11 @@
 
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# Timing is the benchmarks' business: no per-example deadline on a loaded 2-core CI machine.
+settings.register_profile("sliscan", deadline=None)
+settings.load_profile("sliscan")
 
 from sliscan import simulate
 
