@@ -113,3 +113,19 @@ def test_refine_borders_moves_a_biased_border_to_the_local_midpoint():
     stripe = np.where(levels[bit] >= 0.5, 4, 5)  # the frame-wide decision: border at row 23
     refined = refine_borders(stripe, np.ones_like(stripe, bool), levels, spec, reach=10)
     assert np.array_equal(refined[:, 0], np.where(rows < 20, 4, 5))
+
+
+def test_columns_orientation_is_the_transposed_problem(small_rig):
+    """A rig turned by 90 degrees: the transposed capture of a rows pattern is a capture of
+    the columns pattern for the transposed projector, and must decode to the transposed
+    stripes, pixel for pixel (the orientation plumbing of demodulate and decode)."""
+    rows = patterns.thesis_spec((1024, 768))
+    cols = patterns.thesis_spec((768, 1024), orientation="columns")
+    np.testing.assert_array_equal(patterns.render_pattern(cols), patterns.render_pattern(rows).T)
+    capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(rows),
+                              simulate.Conditions(seed=5, supersample=1))
+    by_rows = decode(demodulate(capture.image, rows)[0], rows)
+    by_cols = decode(demodulate(capture.image.T.copy(), cols)[0], cols)
+    np.testing.assert_array_equal(by_cols.stripe, by_rows.stripe.T)
+    np.testing.assert_array_equal(by_cols.valid, by_rows.valid.T)
+    assert (by_cols.stripe == 0).sum() > 1000  # the zero stripe, found along camera x
