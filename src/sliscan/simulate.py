@@ -287,6 +287,7 @@ def virtual_rig(
     camera_fov_deg: float = 30.0,
     projector_fov_deg: float | None = None,
     projector_above: bool = True,
+    baseline_axis: str = "vertical",
     margin: float = 0.05,
 ) -> Rig:
     """The thesis's rig (section 4.2): a projector displaced vertically from the camera.
@@ -295,6 +296,9 @@ def virtual_rig(
     `baseline_mm` above (``y = -baseline_mm``) or below it, pitched about the x axis so that
     its optical axis crosses the camera's at `distance_mm`; that crossing point projects to
     the centre of both images.  Both devices have square pixels and centred principal points.
+    With ``baseline_axis="horizontal"`` the projector sits beside the camera instead (left
+    for `projector_above`, ``x = -baseline_mm``), turned about the y axis: the rig for
+    patterns whose stripes code projector columns (``orientation="columns"``).
 
     Parameters
     ----------
@@ -312,7 +316,10 @@ def virtual_rig(
         whose image covers the camera's whole view of the plane ``Z = distance_mm``, with
         `margin` to spare on the tighter side.
     projector_above : bool
-        Projector above the camera (the thesis's set-up) or below it.
+        Projector above the camera (the thesis's set-up) or below it; left or right of it
+        with a horizontal baseline.
+    baseline_axis : {"vertical", "horizontal"}
+        Direction of the baseline in the camera's image.
     margin : float
         Relative spare coverage for the default projector field of view.
 
@@ -341,11 +348,18 @@ def virtual_rig(
     (wc, hc), (wp, hp) = camera_size, projector_size
     camera = Pinhole(K=_intrinsics(_focal(wc, camera_fov_deg), wc, hc), R=np.eye(3), t=np.zeros(3), size=(wc, hc))
 
+    if baseline_axis not in ("vertical", "horizontal"):
+        raise InputError(f"baseline_axis must be 'vertical' or 'horizontal', got {baseline_axis!r}")
     sign = -1.0 if projector_above else 1.0
-    centre = np.array([0.0, sign * baseline_mm, 0.0])
-    z_axis = np.array([0.0, -sign * baseline_mm, distance_mm]) / math.hypot(baseline_mm, distance_mm)
-    x_axis = np.array([1.0, 0.0, 0.0])
-    R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis])
+    offset = np.array([0.0, sign * baseline_mm, 0.0] if baseline_axis == "vertical" else [sign * baseline_mm, 0.0, 0.0])
+    centre = offset
+    z_axis = np.array([-offset[0], -offset[1], distance_mm]) / math.hypot(baseline_mm, distance_mm)
+    if baseline_axis == "vertical":
+        x_axis = np.array([1.0, 0.0, 0.0])
+        R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis])
+    else:
+        y_axis = np.array([0.0, 1.0, 0.0])
+        R = np.stack([np.cross(y_axis, z_axis), y_axis, z_axis])
     if projector_fov_deg is None:
         corners = np.array([[-0.5, -0.5], [wc - 0.5, -0.5], [-0.5, hc - 0.5], [wc - 0.5, hc - 0.5]])
         world = distance_mm * camera.rays(corners[:, 0], corners[:, 1])
@@ -359,7 +373,8 @@ def virtual_rig(
     calibration = Calibration(
         camera=Device(camera.matrix, camera.size, intrinsics=camera.K),
         projector=Device(projector.matrix, projector.size, intrinsics=projector.K),
-        extra={"source": "sliscan.simulate.virtual_rig", "distance_mm": distance_mm, "baseline_mm": baseline_mm},
+        extra={"source": "sliscan.simulate.virtual_rig", "distance_mm": distance_mm, "baseline_mm": baseline_mm,
+               "baseline_axis": baseline_axis},
     )
     return Rig(calibration, working_distance_mm=distance_mm)
 
