@@ -147,3 +147,11 @@ def test_columns_pattern_on_a_horizontal_baseline_rig():
     acc = accuracy(result, capture.truth, spec, rig.calibration)
     # exact stripes: the error is the code's own staircase (the oracle's) to rounding
     assert acc.median_mm == pytest.approx(acc.oracle_median_mm, rel=0.01) and acc.outliers == 0
+
+
+def test_two_means_ignores_a_few_wild_values(rng):
+    """Dark pixels divide noise by almost nothing; 0.2 % of such values must not become the
+    'on' cluster (they did, and flipped a whole bit on half a frame)."""
+    values = np.concatenate([rng.normal(0.05, 0.02, 5000), rng.normal(0.4, 0.05, 5000), np.full(20, 30.0)])
+    low, high = two_means(values)
+    assert low == pytest.approx(0.05, abs=0.01) and high == pytest.approx(0.4, abs=0.02)

@@ -66,9 +66,11 @@ def two_means(values: NDArray[np.floating], *, iterations: int = 20) -> tuple[fl
     (0.03333333333333333, 1.0)
     """
     v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
     if v.size == 0:
         return 0.0, 1.0
     lo, hi = float(np.percentile(v, 5)), float(np.percentile(v, 95))
+    v = np.clip(v, float(np.percentile(v, 0.5)), float(np.percentile(v, 99.5)))  # a few wild values cannot own a cluster
     for _ in range(iterations):
         t = 0.5 * (lo + hi)
         low, high = v[v < t], v[v >= t]
@@ -290,7 +292,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     Decoded
     """
     bits = spec.bits
-    reference = demod.amplitude[bits] if spec.pilot is not None else demod.dc
+    reference = demod.amplitude[bits] if spec.pilot is not None else _dc_floor(demod.dc)
     ratio = demod.amplitude[:bits] / np.maximum(reference, 1e-6)[None]
     lit = _lit(demod, spec, min_modulation, min_snr)
     levels, spans = _levels(ratio, _sample(lit))
