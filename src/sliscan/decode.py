@@ -110,7 +110,8 @@ def _levels(ratio: NDArray[np.floating], sample: NDArray[np.bool_]) -> tuple[NDA
     return levels, spans
 
 
-def _lit(demod: Demodulated, spec: PatternSpec, min_modulation: float, min_snr: float) -> NDArray[np.bool_]:
+def _lit(demod: Demodulated, spec: PatternSpec, dc: NDArray[np.float32], min_modulation: float,
+         min_snr: float) -> NDArray[np.bool_]:
     """Pixels whose carriers stand clear of the noise.
 
     Each carrier's envelope over the DC is put on its own 0 (off) .. 1 (on) scale over the
@@ -119,7 +120,7 @@ def _lit(demod: Demodulated, spec: PatternSpec, min_modulation: float, min_snr: 
     `min_modulation` on that scale and stands `2 * min_snr` noise deviations above zero.
     """
     carriers = [spec.bits] if spec.pilot is not None else list(range(spec.bits))
-    ratio = demod.amplitude[carriers] / _dc_floor(demod.dc)[None]
+    ratio = demod.amplitude[carriers] / dc[None]
     levels, _ = _levels(ratio, _sample(np.isfinite(ratio[0])))
     lit = levels.max(axis=0) >= min_modulation
     if demod.noise is not None:
@@ -294,9 +295,10 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     Decoded
     """
     bits = spec.bits
-    reference = demod.amplitude[bits] if spec.pilot is not None else _dc_floor(demod.dc)
+    dc = _dc_floor(demod.dc)
+    reference = demod.amplitude[bits] if spec.pilot is not None else dc
     ratio = demod.amplitude[:bits] / np.maximum(reference, 1e-6)[None]
-    lit = _lit(demod, spec, min_modulation, min_snr)
+    lit = _lit(demod, spec, dc, min_modulation, min_snr)
     levels, spans = _levels(ratio, _sample(lit))
     on_bits = levels >= 0.5
     code = bits_to_code(on_bits)

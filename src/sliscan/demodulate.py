@@ -305,16 +305,6 @@ def _flat_field(lines: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     return best_mean
 
 
-def _box_mean_1d(values: NDArray, length: int) -> NDArray:
-    """Centred running mean along the last axis, shifted inside the line at its ends."""
-    width = values.shape[-1]
-    cum = np.zeros(values.shape[:-1] + (width + 1,), dtype=values.dtype)
-    np.cumsum(values, axis=-1, out=cum[..., 1:])
-    start = np.clip(np.arange(width) - length // 2, 0, max(width - length, 0))
-    end = np.minimum(start + length, width)
-    return (cum[..., end] - cum[..., start]) / (end - start)
-
-
 def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables) -> tuple[NDArray, ...]:
     """Least-squares fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` in each window.
 
@@ -401,7 +391,9 @@ def _fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.i
         for i, value in enumerate(fit):
             best[i] = np.where(better[None] if value.ndim == 3 else better, value, best[i])
     unexplained, var, mean, amp, prediction = best
-    misfit = np.abs(_box_mean_1d(block, short) - prediction) / np.maximum(mean, 1e-6)
+    near_start, near_end = _window_bounds(w, short, 0)
+    observed = _running_mean(cums[0], near_start, near_end, short)
+    misfit = np.abs(observed - prediction) / np.maximum(mean, 1e-6)
     # back to image units at the pixel
     return unexplained * flat**2, var * flat**2, mean * flat, amp * flat, misfit
 
