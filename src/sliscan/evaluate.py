@@ -10,7 +10,9 @@ The figures every accuracy claim in sliscan rests on:
 * **outliers**: valid points farther from the truth than one stripe's depth at that pixel
   (a wrong stripe by more than one, or a point where no lit surface was);
 * **oracle**: the same errors for triangulating the ground-truth stripe (the staircase of the
-  code itself): what a perfect decoder of this pattern would get.
+  code itself): what a perfect decoder of this pattern would get;
+* **fitted sphere**: centre and radius of the sphere that best fits the scan's points on a
+  known sphere (the thesis's 122.555 mm target), as a metrologist would check a scanner.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
 
 from sliscan.patterns import stripe_center, stripe_of_line
 from sliscan.reconstruct import triangulate
@@ -118,3 +121,49 @@ def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibrat
                     wrong_stripe=float((valid & lit & ~correct).sum() / max(n_valid, 1)),
                     outliers=float(outliers.sum() / max(n_valid, 1)),
                     rms_mm=rms, median_mm=med, p95_mm=p95, oracle_rms_mm=orms, oracle_median_mm=omed)
+
+
+def fit_sphere(points: NDArray[np.floating]) -> tuple[NDArray[np.float64], float, float]:
+    """Least-squares sphere through 3D points (mm).
+
+    The algebraic fit (``|p|^2 = 2 c.p + k``, linear in the centre ``c`` and ``k``) starts a
+    geometric fit that minimises the points' distances to the sphere.
+
+    Parameters
+    ----------
+    points : (N, 3) array, N >= 4, not all on one plane
+
+    Returns
+    -------
+    centre : (3,) float64, radius : float, rms : float
+        Centre and radius in mm, and the RMS distance (mm) of the points to the sphere.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> d = rng.normal(size=(500, 3)); d /= np.linalg.norm(d, axis=1, keepdims=True)
+    >>> centre, radius, rms = fit_sphere([10, -5, 800] + 122.555 * d)
+    >>> round(radius, 3), bool(rms < 1e-6)
+    (122.555, True)
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    a = np.c_[2 * p, np.ones(len(p))]
+    solution = np.linalg.lstsq(a, np.sum(p**2, axis=1), rcond=None)[0]
+    start = np.r_[solution[:3], np.sqrt(max(solution[3] + solution[:3] @ solution[:3], 0.0))]
+    fit = least_squares(lambda v: np.linalg.norm(p - v[:3], axis=1) - v[3], start)
+    return fit.x[:3], float(fit.x[3]), float(np.sqrt(np.mean(fit.fun**2)))
+
+
+def sphere_fit(result: ScanResult, truth: GroundTruth, centre: ArrayLike, radius: float) -> tuple[float, float]:
+    """Radius (mm) of the sphere fitted to the scan's valid points whose true point lies on the
+    sphere of `centre` and `radius` (mm), and the RMS distance (mm) of those points to it.
+
+    NaN, NaN when fewer than 100 such points exist.  Wrong points are kept: a scanner that
+    returns them is judged with them.
+    """
+    true_distance = np.linalg.norm(truth.points - np.asarray(centre, dtype=np.float32), axis=-1)
+    on_sphere = result.valid & truth.surface & (np.abs(true_distance - radius) < 1.0)
+    if on_sphere.sum() < 100:
+        return float("nan"), float("nan")
+    _, fitted, rms = fit_sphere(result.points[on_sphere])
+    return fitted, rms

@@ -1,0 +1,59 @@
+"""Speckle removal on the projector map: wrong-code patches go, real surfaces and edges stay."""
+
+import numpy as np
+import pytest
+
+from sliscan._validate import InputError
+from sliscan.outliers import default_min_region, remove_speckles
+
+
+def _two_surfaces(rng):
+    """A 200x300 map: two smooth ramps meeting at a real depth step (column 150)."""
+    yy, xx = np.mgrid[0:200, 0:300].astype(np.float32)
+    proj = 0.5 * yy + 0.01 * xx
+    proj[:, 150:] += 120  # an object edge: both sides are large regions
+    return proj + rng.normal(0, 0.2, proj.shape).astype(np.float32)
+
+
+def test_keeps_large_regions_across_a_real_step(rng):
+    proj = _two_surfaces(rng)
+    keep = remove_speckles(proj, np.ones(proj.shape, bool), lines=768, max_jump=4)
+    assert keep.all()
+
+
+def test_drops_wrong_code_patches_of_any_jump_sign(rng):
+    proj = _two_surfaces(rng)
+    truth = np.ones(proj.shape, bool)
+    for (r, c), jump in zip([(20, 20), (100, 60), (150, 200), (50, 250)], (48, -48, 384, -96)):
+        proj[r:r + 5, c:c + 6] += jump  # 30-pixel patches, under min_region_px=40
+        truth[r:r + 5, c:c + 6] = False
+    keep = remove_speckles(proj, np.ones(proj.shape, bool), lines=768, max_jump=4, min_region_px=40)
+    np.testing.assert_array_equal(keep, truth)
+
+
+def test_invalid_and_nan_pixels_stay_invalid_and_split_regions(rng):
+    proj = _two_surfaces(rng)
+    valid = np.ones(proj.shape, bool)
+    valid[:, 100] = False          # a cut line: the 3-pixel-wide strip beside it is isolated
+    valid[:, 104] = False
+    proj[0, 0] = np.nan
+    keep = remove_speckles(proj, valid, lines=768, max_jump=4, min_region_px=700)
+    assert not keep[:, 100].any() and not keep[0, 0]
+    assert not keep[:, 101:104].any()          # 600 pixels < 700
+    assert keep[:, :100].sum() == 200 * 100 - 1
+
+
+def test_default_region_scales_with_the_image():
+    assert default_min_region((972, 1296)) == 252
+    assert default_min_region((10, 10)) == 25
+
+
+@pytest.mark.parametrize("kwargs", [dict(lines=0, max_jump=1), dict(lines=768, max_jump=0)])
+def test_bad_parameters_are_refused(kwargs):
+    with pytest.raises(InputError):
+        remove_speckles(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)
+
+
+def test_shape_mismatch_is_refused():
+    with pytest.raises(InputError, match="same shape"):
+        remove_speckles(np.zeros((4, 4)), np.ones((4, 5), bool), lines=768, max_jump=1)
