@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sliscan import InputError, patterns, simulate
-from sliscan.decode import decode, two_means
+from sliscan.decode import agrees_with_neighbours, decode, two_means
 from sliscan.demodulate import demodulate
 from sliscan.evaluate import accuracy, true_stripes
 from sliscan.pipeline import Scanner
@@ -155,3 +155,30 @@ def test_two_means_ignores_a_few_wild_values(rng):
     values = np.concatenate([rng.normal(0.05, 0.02, 5000), rng.normal(0.4, 0.05, 5000), np.full(20, 30.0)])
     low, high = two_means(values)
     assert low == pytest.approx(0.05, abs=0.01) and high == pytest.approx(0.4, abs=0.02)
+
+
+def _agreement_reference(stripe, valid, radius, min_share=0.5):
+    """The straightforward numpy form of `agrees_with_neighbours`: one shifted comparison per
+    box offset (what sliscan computed before the compiled kernel)."""
+    s = np.where(valid, stripe, -10).astype(np.int32)
+    padded = np.pad(s, radius, constant_values=-10)
+    h, w = s.shape
+    agree = np.zeros((h, w), dtype=np.int32)
+    total = np.zeros((h, w), dtype=np.int32)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            other = padded[dy : dy + h, dx : dx + w]
+            total += other >= 0
+            agree += (other >= 0) & (np.abs(other - s) <= 1)
+    return valid & (agree >= min_share * total)
+
+
+@pytest.mark.parametrize("radius", [1, 3])
+def test_neighbour_agreement_kernel_equals_the_numpy_form(radius):
+    rng = np.random.default_rng(radius)
+    stripe = np.cumsum(rng.random((120, 90)) < 0.05, axis=0) % 16
+    stripe = np.where(rng.random(stripe.shape) < 0.05, rng.integers(0, 16, stripe.shape), stripe)
+    valid = rng.random(stripe.shape) < 0.8
+    kept = agrees_with_neighbours(stripe, valid, radius=radius)
+    np.testing.assert_array_equal(kept, _agreement_reference(stripe, valid, radius))
+    assert 0.3 < kept.mean() < valid.mean()

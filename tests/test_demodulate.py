@@ -100,3 +100,29 @@ def test_columns_orientation_is_the_transpose():
 def test_bad_method():
     with pytest.raises(InputError, match="method must be"):
         demodulate(np.zeros((10, 10)), patterns.thesis_spec((1024, 768)), method="fft")
+
+
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_window_kernel_equals_the_numpy_fit(small_rig, adaptive):
+    """The compiled per-line kernel computes what the straightforward numpy fit
+    (`window_reference.fit_lines`, sliscan's implementation before the kernel) computes, on a
+    realistic capture with shadows, edges and gamma, to float32 rounding."""
+    from window_reference import fit_lines
+
+    from sliscan.demodulate import _short_window
+
+    spec = patterns.default_spec((1024, 768))
+    conditions = simulate.Conditions(albedo=simulate.CheckerAlbedo(square_mm=40, low=0.25, high=0.9), ambient=0.1,
+                                     projector_gamma=2.2, projector_blur_px=1.0, camera_blur_px=1.0, seed=2)
+    image = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions).image
+    carriers = detect_carriers(image, spec)
+    out = demodulate_window(image, carriers, adaptive=adaptive, workers=2)
+    windows = np.broadcast_to(carriers.line_windows(), (image.shape[0],))
+    for window in np.unique(windows)[:3]:
+        lines = np.flatnonzero(windows == window)[:40]
+        unexplained, var, dc, amp, misfit = fit_lines(image, carriers, lines, int(window), _short_window(carriers),
+                                                      adaptive=adaptive)
+        np.testing.assert_allclose(out.dc[lines], dc, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(out.amplitude[:, lines], amp, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(out.misfit[lines], misfit, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(out.residual[lines], unexplained / np.maximum(var, 1e-12), rtol=1e-4, atol=1e-6)

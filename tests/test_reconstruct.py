@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from test_calibrate import WORKING_DISTANCE_MM, make_rig
 
 from sliscan import Calibration, Device, InputError
-from sliscan.reconstruct import triangulate, triangulate_points
+from sliscan.reconstruct import Triangulator, _solve, triangulate, triangulate_points
 
 # The projector sits 200 mm above the camera for rows (vertical baseline, the thesis's rig) and
 # 200 mm to its right for columns (horizontal baseline): each orientation needs its baseline
@@ -109,7 +109,8 @@ def test_scattered_points_match_the_grid():
     rows, cols = np.nonzero(np.isfinite(proj_map))
     points = triangulate_points(cols, rows, proj_map[rows, cols], calibration)
     assert points.dtype == np.float64
-    np.testing.assert_array_equal(points.astype(np.float32), triangulate(proj_map, calibration)[rows, cols])
+    # the grid's per-pixel coefficients (`Triangulator`): equal to float32 rounding
+    np.testing.assert_allclose(triangulate(proj_map, calibration)[rows, cols], points, rtol=1e-6)
 
 
 def test_nan_and_ill_conditioned_points_are_nan():
@@ -140,8 +141,8 @@ def test_camera_distortion_is_undistorted(rng):
     proj_map = np.full(camera.shape, np.nan)
     proj_map[::50, ::50] = 90.0
     rows, cols = np.nonzero(np.isfinite(proj_map))
-    np.testing.assert_array_equal(triangulate(proj_map, calibration)[rows, cols],
-                                  triangulate_points(cols, rows, proj_map[rows, cols], calibration).astype(np.float32))
+    np.testing.assert_allclose(triangulate(proj_map, calibration)[rows, cols],
+                               triangulate_points(cols, rows, proj_map[rows, cols], calibration), rtol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------- errors
@@ -192,3 +193,22 @@ def test_unsupported_distortion():
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(4_13_22)
+
+
+@pytest.mark.parametrize("orientation", ["rows", "columns"])
+def test_triangulator_coefficients_equal_the_3x3_solve(small_rig, orientation, rng):
+    """The per-pixel rational coefficients give the 3x3 solve's points within 1e-3 mm over
+    the working volume of the virtual rig (float32 rounding), and NaN at the same pixels."""
+    calibration = small_rig.calibration
+    h, w = calibration.camera.shape
+    lines = calibration.projector.size[1 if orientation == "rows" else 0]
+    proj_map = rng.uniform(-0.5, lines - 0.5, (h, w)).astype(np.float32)
+    proj_map[rng.random((h, w)) < 0.1] = np.nan
+    points = Triangulator(calibration, orientation)(proj_map)
+    yc, xc = np.mgrid[0:h, 0:w]
+    solved = _solve(xc.ravel().astype(float), yc.ravel().astype(float), proj_map.ravel().astype(float), calibration,
+                    orientation).reshape(h, w, 3)
+    np.testing.assert_array_equal(np.isnan(points[..., 0]), np.isnan(solved[..., 0]))
+    near = np.linalg.norm(np.nan_to_num(solved, nan=1e9), axis=-1) < 2000  # the rig looks at 800 mm
+    assert near.mean() > 0.5
+    np.testing.assert_allclose(points[near], solved[near], rtol=0, atol=1e-3)

@@ -22,12 +22,14 @@ neighbour of stripe 1 on the side away from stripe 2 (see `_zero_stripe`).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.demodulate import Demodulated
+from sliscan.demodulate import Demodulated, default_workers
 from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
 from sliscan.types import PatternSpec
 
@@ -170,6 +172,24 @@ def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: 
     return passable & unmodulated & (rows > blocked)
 
 
+@numba.njit(cache=True, nogil=True)
+def _neighbour_agreement(stripe: NDArray[np.int32], radius: int, rows: NDArray[np.intp], agree: NDArray[np.int32],
+                         total: NDArray[np.int32]) -> None:
+    """For the given rows: valid pixels (stripe >= 0) in each pixel's ``(2 radius + 1)**2`` box
+    (`total`), and how many of them are within one stripe of the pixel's own (`agree`)."""
+    h, w = stripe.shape
+    for y in rows:
+        for x in range(w):
+            own, n_agree, n_total = stripe[y, x], 0, 0
+            for yy in range(max(y - radius, 0), min(y + radius + 1, h)):
+                for xx in range(max(x - radius, 0), min(x + radius + 1, w)):
+                    other = stripe[yy, xx]
+                    if other >= 0:
+                        n_total += 1
+                        n_agree += abs(other - own) <= 1
+            agree[y, x], total[y, x] = n_agree, n_total
+
+
 def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_], *, radius: int = 3,
                            min_share: float = 0.5) -> NDArray[np.bool_]:
     """Valid pixels whose stripe matches (within one) most valid pixels around them.
@@ -177,7 +197,8 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
     On any surface the stripe index varies slowly across the camera image, except at depth
     edges, where each side still agrees with itself; an isolated decision that disagrees with
     at least `min_share` of the valid pixels in its ``(2 radius + 1)**2`` box is a decoding
-    error (a flipped high bit), and would be a point far off the surface.
+    error (a flipped high bit), and would be a point far off the surface.  The boxes are
+    counted by a compiled kernel, rows in parallel threads.
 
     Parameters
     ----------
@@ -185,15 +206,11 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
     valid : (H, W) bool array
     """
     s = np.where(valid, stripe, -10).astype(np.int32)
-    padded = np.pad(s, radius, constant_values=-10)
-    h, w = s.shape
-    agree = np.zeros((h, w), dtype=np.int32)
-    total = np.zeros((h, w), dtype=np.int32)
-    for dy in range(2 * radius + 1):
-        for dx in range(2 * radius + 1):
-            other = padded[dy : dy + h, dx : dx + w]
-            total += other >= 0
-            agree += (other >= 0) & (np.abs(other - s) <= 1)
+    agree, total = np.empty(s.shape, dtype=np.int32), np.empty(s.shape, dtype=np.int32)
+    workers = default_workers()
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(lambda rows: _neighbour_agreement(s, radius, rows, agree, total),
+                      np.array_split(np.arange(s.shape[0]), 4 * workers)))
     return valid & (agree >= min_share * total)
 
 

@@ -24,8 +24,11 @@ Frequencies are in cycles per camera pixel along the carrier direction (camera `
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -102,6 +105,11 @@ class Demodulated:
     residual: NDArray[np.float32]
     misfit: NDArray[np.float32] | None = None
     noise: NDArray[np.float32] | None = None
+
+
+def default_workers() -> int:
+    """Threads for the parallel stages: the CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -215,143 +223,9 @@ def _line_scales(img: NDArray[np.float32], proj: NDArray[np.float64], scale: flo
     return np.clip(fitted, scale * np.exp(-span), scale * np.exp(span))
 
 
-def _window_bounds(width: int, window: int, placement: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Start and end (exclusive) of each pixel's window: placement -1 ends at the pixel,
-    0 is centred on it, +1 starts at it; windows are shifted inside the line at its ends."""
-    x = np.arange(width)
-    offset = {-1: window - 1, 0: window // 2, 1: 0}[placement]
-    start = np.clip(x - offset, 0, width - window)
-    return start, start + window
-
-
-def _running_mean(cum: NDArray, start: NDArray[np.intp], end: NDArray[np.intp], window: int) -> NDArray:
-    return (cum[:, end] - cum[:, start]) / window
-
-
-def _cumsum0(values: NDArray) -> NDArray:
-    out = np.zeros((values.shape[0], values.shape[1] + 1), dtype=values.dtype)
-    np.cumsum(values, axis=1, out=out[:, 1:])
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class _WindowTables:
-    """Per-line, per-window-start constants of the local least-squares fit (`_fit_windows`).
-
-    For carrier n of line r and a window of length L starting at s, with ``t`` the offset
-    from the window's centre: ``g[n, r, s]`` = mean of ``exp(-i w_rn x)`` and ``h[n, r, s]``
-    = mean of ``t exp(-i w_rn x)`` over the window (closed forms: a geometric series times
-    ``exp(-i w s)``); ``near[n, r, x]`` = mean of ``exp(+i w_rn x)`` over the short window
-    around x; ``t2`` = mean of ``t**2``.
-    """
-
-    phasors: NDArray[np.complex128]  # (C, lines, W)
-    g: NDArray[np.complex128]  # (C, lines, W)
-    h: NDArray[np.complex128]  # (C, lines, W)
-    near: NDArray[np.complex128]  # (C, lines, W)
-    pairs: tuple[tuple[int, int], ...]  # (n, m), n <= m
-    sums: NDArray[np.complex128]  # (pairs, lines, W): mean of exp(i (w_n + w_m) x)
-    diffs: NDArray[np.complex128]  # (pairs, lines, W): mean of exp(i (w_n - w_m) x); 1 for n == m
-    t2: float
-    window: int
-    short: int
-
-    @classmethod
-    def build(cls, width: int, freqs: NDArray[np.float64], window: int, short: int) -> _WindowTables:
-        """`freqs` is ``(lines, C)`` in cycles per pixel."""
-        omega = 2 * np.pi * freqs.T[:, :, None]  # (C, lines, 1)
-        x = np.arange(width, dtype=np.float64)
-        phasors = np.exp(-1j * omega * x)
-        j = np.arange(window, dtype=np.float64)
-        t = j - (window - 1) / 2
-        series = np.exp(-1j * omega * j)  # (C, lines, L)
-        g = phasors * series.mean(axis=-1, keepdims=True)
-        h = phasors * (series * t).mean(axis=-1, keepdims=True)
-        near_start = np.clip(x - short // 2, 0, max(width - short, 0))
-        near = np.exp(1j * omega * near_start) * np.exp(1j * omega * np.arange(short)).mean(axis=-1, keepdims=True)
-        pairs = tuple((n, m) for n in range(omega.shape[0]) for m in range(n, omega.shape[0]))
-        sums = np.stack([_window_mean_phasor(omega[n] + omega[m], x, j) for n, m in pairs])
-        diffs = np.stack([_window_mean_phasor(omega[n] - omega[m], x, j) for n, m in pairs])
-        return cls(phasors, g, h, near, pairs, sums, diffs, float(np.mean(t * t)), window, short)
-
-
-def _window_mean_phasor(omega: NDArray[np.float64], x: NDArray[np.float64], j: NDArray[np.float64]) -> NDArray[np.complex128]:
-    """Mean of ``exp(i omega x)`` over the window starting at each x: ``(lines, W)``."""
-    return np.exp(1j * omega * x) * np.exp(1j * omega * j).mean(axis=-1, keepdims=True)
-
-
 def _short_window(carriers: Carriers) -> int:
     """One period of the highest carrier, in camera pixels (at least 3)."""
     return max(3, int(round(1.0 / float(carriers.frequencies.max()))))
-
-
-def _flat_field(lines: NDArray[np.float64], window: int) -> NDArray[np.float64]:
-    """Local mean of each pixel over the box of one window, ending at, centred on or starting
-    at the pixel.  The centred box (unbiased on a smooth albedo gradient) is kept unless a
-    one-sided box varies much less relative to its mean (`FLAT_GAIN`): then the centred
-    one straddles an albedo edge or a shadow border and the one-sided one does not."""
-    w = lines.shape[1]
-    cum, cum2 = _cumsum0(lines), _cumsum0(lines * lines)
-    best_mean = best_var = centre_var = None
-    for placement in (0, -1, 1):
-        start, end = _window_bounds(w, window, placement)
-        mean = _running_mean(cum, start, end, window)
-        var = (_running_mean(cum2, start, end, window) - mean * mean) / np.maximum(mean * mean, 1e-12)
-        if best_mean is None:
-            best_mean, best_var, centre_var = mean, var, var
-        else:
-            better = (var < best_var) & (var < FLAT_GAIN * centre_var)
-            best_mean, best_var = np.where(better, mean, best_mean), np.where(better, var, best_var)
-    return best_mean
-
-
-def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables) -> tuple[NDArray, ...]:
-    """Least-squares fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` in each window.
-
-    Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
-    but not to a ramp: an albedo gradient across the window would leak into every carrier.
-    With the couplings of the DC and the ramp to each carrier known per window start
-    (`_WindowTables`), the carriers are eliminated (``c_n = q_n - d g_n - s h_n``) and the
-    remaining 2x2 system for the DC and the ramp is solved exactly, element-wise.  Only the
-    carriers' couplings to each other (of the order of the window's rounding to whole
-    pixels) are neglected.
-
-    Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...), prediction)``,
-    where `prediction` is the fitted model's mean over the short window around each pixel.
-    """
-    cum_i, cum_i2, cum_xi, cum_q = cums
-    win = tables.window
-    end = start + win
-    centre = start + (win - 1) / 2
-    m0 = _running_mean(cum_i, start, end, win)
-    m1 = _running_mean(cum_xi, start, end, win) - centre * m0
-    q = np.stack([_running_mean(cq, start, end, win) for cq in cum_q])  # (C, lines, W)
-    g, h = tables.g[:, :, start], tables.h[:, :, start]
-    gg = 2 * np.sum(np.abs(g) ** 2, axis=0)
-    hh = 2 * np.sum(np.abs(h) ** 2, axis=0)
-    gh = 2 * np.sum((g * np.conj(h)).real, axis=0)
-    a11, a12, b1 = 1 - gg, -gh, m0 - 2 * np.sum((q * np.conj(g)).real, axis=0)
-    a21, a22, b2 = -gh, tables.t2 - hh, m1 - 2 * np.sum((q * np.conj(h)).real, axis=0)
-    det = a11 * a22 - a12 * a21
-    det = np.where(np.abs(det) > 1e-12, det, 1e-12)
-    d = (b1 * a22 - a12 * b2) / det
-    slope = (a11 * b2 - a21 * b1) / det
-    c = q - d * g - slope * h
-    mean_sq = _running_mean(cum_i2, start, end, win)
-    var = np.maximum(mean_sq - m0 * m0, 0)
-    # mean of (I - model)^2 = <I,I> - 2 <I,model> + <model,model>, every Gram term exact, so
-    # the small neglected couplings only enter to second order.
-    cross = d * m0 + slope * m1 + 2 * np.sum((np.conj(c) * q).real, axis=0)
-    model_sq = (d * d + slope * slope * tables.t2 + 4 * d * np.sum((c * np.conj(g)).real, axis=0)
-                + 4 * slope * np.sum((c * np.conj(h)).real, axis=0))
-    for k, (n, m) in enumerate(tables.pairs):
-        weight = 2.0 if n == m else 4.0
-        model_sq = model_sq + weight * (c[n] * c[m] * tables.sums[k][:, start]).real
-        model_sq = model_sq + (2 * np.abs(c[n]) ** 2 if n == m else 4 * (c[n] * np.conj(c[m]) * tables.diffs[k][:, start]).real)
-    unexplained = np.maximum(mean_sq - 2 * cross + model_sq, 0)
-    x = np.arange(start.size)
-    prediction = d + slope * (x - centre) + 2 * np.sum((c * tables.near).real, axis=0)
-    return unexplained, var, d, 2 * np.abs(c), prediction
 
 
 #: A one-sided window replaces the centred one where it leaves less than this fraction of
@@ -361,51 +235,206 @@ PLACEMENT_GAIN = 0.5
 #: below this fraction of the centred box's (measured: 0.1 keeps the centred box's accuracy
 #: on smooth albedo and removes part of the leakage at albedo edges and shadow borders).
 FLAT_GAIN = 0.1
+#: Offset of a window's start from the pixel, per placement: centred (tried first, the
+#: default), ending at the pixel, starting at it.
+_PLACEMENTS = (0, -1, 1)
 
 
-def _fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.intp], window: int, short: int,
-               *, adaptive: bool) -> tuple[NDArray, ...]:
-    """Best window fit of some lines that share one window length.
+@numba.njit(cache=True, inline="always")
+def _window_start(x: int, width: int, window: int, placement: int) -> int:
+    """Start of the window of `x`: placement -1 ends at the pixel, 0 is centred on it, +1
+    starts at it; windows are shifted inside the line at its ends."""
+    offset = window - 1 if placement == -1 else (window // 2 if placement == 0 else 0)
+    return min(max(x - offset, 0), width - window)
 
-    Returns ``(unexplained, var, dc, amp (C, n, W), misfit)`` for ``img[lines]``.  The
-    centred window is kept unless a one-sided one leaves less than `PLACEMENT_GAIN` of its
-    unexplained energy and the least of all.
+
+@numba.njit(cache=True)
+def _cumsum0(values: NDArray) -> NDArray:
+    """Running sums with a leading 0: ``out[k] = sum(values[:k])``, ``(n + 1,)``."""
+    out = np.zeros(values.size + 1, dtype=values.dtype)
+    for k in range(values.size):
+        out[k + 1] = out[k] + values[k]
+    return out
+
+
+@numba.njit(cache=True)
+def _flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
+    """Local mean of each pixel over the box of one window, ending at, centred on or starting
+    at the pixel.  The centred box (unbiased on a smooth albedo gradient) is kept unless a
+    one-sided box varies much less relative to its mean (`FLAT_GAIN`): then the centred
+    one straddles an albedo edge or a shadow border and the one-sided one does not."""
+    width = line.size
+    cum, cum2 = _cumsum0(line), _cumsum0(line * line)
+    out = np.empty(width)
+    for x in range(width):
+        best_mean = best_var = centre_var = 0.0
+        for k, placement in enumerate(_PLACEMENTS):
+            s = _window_start(x, width, window, placement)
+            mean = (cum[s + window] - cum[s]) / window
+            var = ((cum2[s + window] - cum2[s]) / window - mean * mean) / max(mean * mean, 1e-12)
+            if k == 0:
+                best_mean, best_var, centre_var = mean, var, var
+            elif var < best_var and var < FLAT_GAIN * centre_var:
+                best_mean, best_var = mean, var
+        out[x] = best_mean
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_means(omega: NDArray[np.float64], length: int, weighted: bool) -> NDArray[np.complex128]:
+    """Mean over ``j = 0 .. length - 1`` of ``exp(i omega_n j)``, times ``j - (length - 1) / 2``
+    if `weighted`, one per frequency: ``(C,)``.  Unweighted: the geometric series' closed form."""
+    out = np.zeros(omega.size, dtype=np.complex128)
+    centre = (length - 1) / 2
+    for n in range(omega.size):
+        if weighted:
+            for j in range(length):
+                out[n] += np.exp(1j * omega[n] * j) * (j - centre)
+            out[n] /= length
+        elif abs(np.sin(omega[n] / 2)) < 1e-9:
+            out[n] = np.exp(1j * omega[n] * centre)
+        else:
+            out[n] = (1 - np.exp(1j * omega[n] * length)) / (length * (1 - np.exp(1j * omega[n])))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _phasors(omega: NDArray[np.float64], width: int, block: int = 64) -> NDArray[np.complex128]:
+    """``exp(-i omega_n x)`` for ``x = 0 .. width - 1``, ``(C, W)``: a product of a coarse
+    and a fine table (``x = block a + b``), one complex product per value instead of an exp."""
+    out = np.empty((omega.size, width), dtype=np.complex128)
+    for n in range(omega.size):
+        fine = np.exp(-1j * omega[n] * np.arange(block))
+        for a in range(0, width, block):
+            coarse = np.exp(-1j * omega[n] * a)
+            for b in range(min(block, width - a)):
+                out[n, a + b] = coarse * fine[b]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int, adaptive: bool,
+              unexplained: NDArray[np.float32], var: NDArray[np.float32], dc: NDArray[np.float32],
+              amp: NDArray[np.float32], misfit: NDArray[np.float32]) -> None:
+    """Best least-squares window fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` at every
+    pixel of one line; writes the outputs of `demodulate_window` for it (``(W,)`` each, `amp`
+    ``(C, W)``), in image units.
+
+    The line is divided by its flat field, then every window sum comes from running sums.
+    Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
+    but not to a ramp: an albedo gradient across the window would leak into every carrier.
+    With the couplings of the DC and the ramp to each carrier known in closed form for each
+    window start (``g_n`` = mean of ``exp(-i w_n x)``, ``h_n`` = mean of ``t exp(-i w_n
+    x)``, ``t`` the offset from the window's centre), the carriers are eliminated (``c_n = q_n
+    - d g_n - s h_n``, ``q_n`` the window mean of ``I exp(-i w_n x)``) and the remaining 2x2
+    system for the DC and the ramp is solved exactly.  Only the carriers' couplings to each
+    other (of the order of the window's rounding to whole pixels) are neglected.  The
+    unexplained energy, mean of ``(I - model)^2 = <I,I> - 2 <I,model> + <model,model>``, has
+    every Gram term exact, so the neglected couplings only enter it to second order.
+
+    Each window start is fitted once.  A pixel keeps its centred window unless a one-sided
+    one leaves less than `PLACEMENT_GAIN` of its unexplained energy and the least of all.
+    The misfit compares the best model's mean over the short window (one period of the
+    highest carrier) around the pixel with the line's own mean there, relative to the DC.
     """
-    w = img.shape[1]
-    x = np.arange(w, dtype=np.float64)
-    raw = img[lines].astype(np.float64)
-    # Divide out the local mean (a box of one spacing period, which cancels every carrier):
-    # albedo multiplies the whole pattern, and a smooth albedo divided by its own local
-    # mean is flat to second order, so the carriers keep a constant amplitude in the window.
+    width, n_carriers = line.size, omega.size
+    x = np.arange(width)
+    raw = line.astype(np.float64)
     flat = np.maximum(_flat_field(raw, window), 1e-4)
     block = raw / flat
-    tables = _WindowTables.build(w, carriers.line_frequencies(lines), window, short)
-    cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
-            [_cumsum0(block * ph) for ph in tables.phasors])
-    placements = (0, -1, 1) if adaptive else (0,)
-    best = list(_fit_windows(cums, _window_bounds(w, window, placements[0])[0], tables))
-    centre_unexplained = best[0]
-    for placement in placements[1:]:
-        fit = _fit_windows(cums, _window_bounds(w, window, placement)[0], tables)
-        better = (fit[0] < best[0]) & (fit[0] < PLACEMENT_GAIN * centre_unexplained)
-        for i, value in enumerate(fit):
-            best[i] = np.where(better[None] if value.ndim == 3 else better, value, best[i])
-    unexplained, var, mean, amp, prediction = best
-    near_start, near_end = _window_bounds(w, short, 0)
-    observed = _running_mean(cums[0], near_start, near_end, short)
-    misfit = np.abs(observed - prediction) / np.maximum(mean, 1e-6)
-    # back to image units at the pixel
-    return unexplained * flat**2, var * flat**2, mean * flat, amp * flat, misfit
+    phasors = _phasors(omega, width)
+    cum_i, cum_i2, cum_xi = _cumsum0(block), _cumsum0(block * block), _cumsum0(block * x)
+    cum_q = np.empty((n_carriers, width + 1), dtype=np.complex128)
+    for n in range(n_carriers):
+        cum_q[n] = _cumsum0(block * phasors[n])
+    g0, h0 = np.conj(_window_means(omega, window, False)), np.conj(_window_means(omega, window, True))
+    near0 = _window_means(omega, short, False)
+    sums0 = np.empty((n_carriers, n_carriers), dtype=np.complex128)
+    diffs0 = np.empty((n_carriers, n_carriers), dtype=np.complex128)
+    for n in range(n_carriers):
+        sums0[n] = _window_means(omega[n] + omega, window, False)
+        diffs0[n] = _window_means(omega[n] - omega, window, False)
+    t2 = (window * window - 1) / 12.0
+    # In each window's own phase (coefficients times exp(+i w_n s)) the couplings g_n, h_n are
+    # the same for every start, and so is the 2x2 system for the DC and the ramp.
+    gg = 2 * np.sum(np.abs(g0) ** 2)
+    hh = 2 * np.sum(np.abs(h0) ** 2)
+    gh = 2 * np.sum((g0 * np.conj(h0)).real)
+    a11, a12, a21, a22 = 1 - gg, -gh, -gh, t2 - hh
+    det = a11 * a22 - a12 * a21
+    if abs(det) <= 1e-12:
+        det = 1e-12
+    # The fit depends on the window's start only: fit each start once, then pick per pixel.
+    n_starts = width - window + 1
+    fit_u, fit_var, fit_d, fit_slope = np.empty(n_starts), np.empty(n_starts), np.empty(n_starts), np.empty(n_starts)
+    fit_c = np.empty((n_starts, n_carriers), dtype=np.complex128)  # in the window's phase
+    q = np.empty(n_carriers, dtype=np.complex128)
+    for s in range(n_starts):
+        e = s + window
+        centre = s + (window - 1) / 2
+        m0 = (cum_i[e] - cum_i[s]) / window
+        m1 = (cum_xi[e] - cum_xi[s]) / window - centre * m0
+        b1, b2 = m0, m1
+        for n in range(n_carriers):
+            q[n] = (cum_q[n, e] - cum_q[n, s]) / window * np.conj(phasors[n, s])
+            b1 -= 2 * (q[n] * np.conj(g0[n])).real
+            b2 -= 2 * (q[n] * np.conj(h0[n])).real
+        d = (b1 * a22 - a12 * b2) / det
+        slope = (a11 * b2 - a21 * b1) / det
+        mean_sq = (cum_i2[e] - cum_i2[s]) / window
+        cross = d * m0 + slope * m1
+        model_sq = d * d + slope * slope * t2
+        c = fit_c[s]
+        for n in range(n_carriers):
+            c[n] = q[n] - d * g0[n] - slope * h0[n]
+            cross += 2 * (np.conj(c[n]) * q[n]).real
+            model_sq += 4 * d * (c[n] * np.conj(g0[n])).real + 4 * slope * (c[n] * np.conj(h0[n])).real
+        for n in range(n_carriers):
+            # pairs (n, m >= n): the sum and difference frequencies' window means
+            model_sq += 2 * (c[n] * c[n] * sums0[n, n]).real + 2 * (c[n].real ** 2 + c[n].imag ** 2)
+            for m in range(n + 1, n_carriers):
+                model_sq += 4 * (c[n] * c[m] * sums0[n, m]).real + 4 * (c[n] * np.conj(c[m]) * diffs0[n, m]).real
+        fit_u[s], fit_var[s] = max(mean_sq - 2 * cross + model_sq, 0.0), max(mean_sq - m0 * m0, 0.0)
+        fit_d[s], fit_slope[s] = d, slope
+    for xi in range(width):
+        best = _window_start(xi, width, window, 0)
+        for k in range(1, len(_PLACEMENTS) if adaptive else 1):
+            s = _window_start(xi, width, window, _PLACEMENTS[k])
+            if fit_u[s] < fit_u[best] and fit_u[s] < PLACEMENT_GAIN * fit_u[_window_start(xi, width, window, 0)]:
+                best = s
+        near = min(max(xi - short // 2, 0), max(width - short, 0))
+        prediction = fit_d[best] + fit_slope[best] * (xi - (best + (window - 1) / 2))
+        for n in range(n_carriers):
+            prediction += 2 * (fit_c[best, n] * phasors[n, best] * np.conj(phasors[n, near]) * near0[n]).real
+        ns = min(max(xi - short // 2, 0), width - short)
+        observed = (cum_i[ns + short] - cum_i[ns]) / short
+        f = flat[xi]
+        unexplained[xi], var[xi], dc[xi] = fit_u[best] * f * f, fit_var[best] * f * f, fit_d[best] * f
+        misfit[xi] = abs(observed - prediction) / max(fit_d[best], 1e-6)
+        for n in range(n_carriers):
+            amp[n, xi] = 2 * abs(fit_c[best, n]) * f
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: NDArray[np.intp], short: int,
+               adaptive: bool, lines: NDArray[np.intp], unexplained: NDArray[np.float32], var: NDArray[np.float32],
+               dc: NDArray[np.float32], amp: NDArray[np.float32], misfit: NDArray[np.float32]) -> None:
+    """`_fit_line` on the given `lines` of `img` ``(H, W)``, without the GIL (threads run
+    disjoint sets of lines); `omegas` ``(H, C)`` radians per pixel, `windows` ``(H,)``;
+    outputs ``(H, W)`` and `amp` ``(C, H, W)``."""
+    for r in lines:
+        _fit_line(img[r], omegas[r], windows[r], short, adaptive, unexplained[r], var[r], dc[r], amp[:, r], misfit[r])
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
-                      chunk_lines: int = 128) -> Demodulated:
+                      workers: int | None = None) -> Demodulated:
     """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
 
-    In every window of one spacing period the line is fitted with a DC, a ramp (albedo
-    gradients) and the carriers (`_fit_windows`); all sums come from cumulative sums, so
-    the cost does not depend on the window length.  Each line gets the window of its own
-    carrier scale (`Carriers.line_windows`), so its carriers complete whole periods in it.
+    In every window of one spacing period the line, divided by its flat field, is fitted
+    with a DC, a ramp (albedo gradients) and the carriers (`_fit_line`); all sums come from
+    running sums, so the cost does not depend on the window length.  Each line gets the
+    window of its own carrier scale (`Carriers.line_windows`), so its carriers complete
+    whole periods in it.  The lines are fitted by a compiled kernel, in parallel.
 
     Parameters
     ----------
@@ -420,29 +449,30 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         leaves less than half its unexplained energy: where the code changes gradually
         across the window (an oblique stripe border) the centred fit is the unbiased one.
         If false, always the centred window.
-    chunk_lines : int
-        Lines processed at once (bounds memory).
+    workers : int, optional
+        Threads fitting lines in parallel (default: `default_workers`).
 
     Returns
     -------
     Demodulated
         In the same (axis-1-along-carriers) frame as `image`.
     """
-    img = check_image("capture", image)
+    workers = default_workers() if workers is None else workers
+    img = np.ascontiguousarray(check_image("capture", image), dtype=np.float32)
     h, w = img.shape
     short = _short_window(carriers)
-    windows = np.broadcast_to(carriers.line_windows(), (h,))
+    windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (h,)), dtype=np.intp)
     if windows.max() > w:
         raise InputError(f"capture is {w} px along the carriers, shorter than one carrier spacing ({windows.max()} px)")
-    unexplained, var, dc, misfit, noise = (np.empty((h, w), dtype=np.float32) for _ in range(5))
+    omegas = np.ascontiguousarray(2 * np.pi * carriers.line_frequencies(slice(0, h)), dtype=np.float64)
+    unexplained, var, dc, misfit = (np.empty((h, w), dtype=np.float32) for _ in range(4))
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
-    for window in np.unique(windows):
-        same = np.flatnonzero(windows == window)
-        for lines in np.array_split(same, max(1, int(np.ceil(same.size / chunk_lines)))):
-            u, v, d, a, m = _fit_lines(img, carriers, lines, int(window), short, adaptive=adaptive)
-            unexplained[lines], var[lines], dc[lines], amp[:, lines], misfit[lines] = u, v, d, a, m
-            # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
-            noise[lines] = np.sqrt(2 * u / max(int(window) - 2 * carriers.frequencies.size - 2, 1))
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc,
+                                               amp, misfit), np.array_split(np.arange(h), 4 * workers)))
+    # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
+    dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
+    noise = np.sqrt(2 * unexplained / dof[:, None])
     return Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise)
 
 
