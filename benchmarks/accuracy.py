@@ -10,6 +10,17 @@ noise, 8 bits), render a capture, scan it and compare with the ground truth
     python benchmarks/accuracy.py                       # thesis sizes: 2592x1944 camera
     python benchmarks/accuracy.py --camera 1296x972 --seeds 1 --quick
     python benchmarks/accuracy.py --patterns "sliscan 6-bit,sliscan 8-bit" --scenes sphere
+    python benchmarks/accuracy.py --quick --captures /tmp/captures   # render once, rescan later
+    python benchmarks/accuracy.py --compare --camera 1296x972        # single shot vs multi-shot
+
+`--compare` prints instead the comparison the thesis made (its figs. 3.28 and 6.2), made
+quantitative: the thesis's 4-bit composite pattern, sliscan's, classic multi-shot Gray code
+(OpenCV's sequence, one code per projector row: 10 bits for 768 rows; and with 4-step phase
+refinement on 8-row codes), and multi-frequency PMP (frequencies 1, 8, 64 x 4 steps), on the
+sphere and the steps under clean conditions (noise-free, linear projector, no blur, no
+ambient, uniform albedo) and realistic ones (as above, smooth albedo): RMS, median and 95th
+percentile 3D error, completeness, outliers (farther than one stripe of the 4-bit pattern
+from the truth: one yardstick for all), the radius fitted to the sphere (122.555 mm), frames.
 """
 
 from __future__ import annotations
@@ -19,8 +30,11 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from sliscan import patterns, simulate
-from sliscan.evaluate import accuracy
+from sliscan import sequences
+from sliscan.evaluate import accuracy, sphere_fit, stripe_depth, surface_accuracy
 from sliscan.pipeline import Scanner
 
 SCENES = {
@@ -68,10 +82,16 @@ def main() -> None:
     parser.add_argument("--methods", default="window,bandpass")
     parser.add_argument("--json", default="benchmarks/accuracy.json")
     parser.add_argument("--markdown", help="also write the table as Markdown (as in the README) to this file")
+    parser.add_argument("--compare", action="store_true", help="single shot vs multi-shot (see above)")
+    parser.add_argument("--captures", help="folder caching the rendered captures and truths (npz), so a re-run "
+                        "(e.g. before and after a change to the decoder) scans the same frames without rendering")
     args = parser.parse_args()
     camera = tuple(int(v) for v in args.camera.split("x"))
     projector = tuple(int(v) for v in args.projector.split("x"))
     rig = simulate.virtual_rig(camera_size=camera, projector_size=projector)
+    if args.compare:
+        compare(rig, projector, args)
+        return
     rows = []
     header = (f"{'pattern':22s} {'decoder':9s} {'scene':7s} {'albedo':8s} {'seed':>4s} {'stripe%':>8s} "
               f"{'complete%':>9s} {'outlier%':>8s} {'rms mm':>8s} {'med mm':>7s} {'oracle med':>10s} {'s':>5s}")
@@ -85,7 +105,8 @@ def main() -> None:
             scene = SCENES[scene_name]()
             for albedo in args.albedo.split(","):
                 for seed in range(args.seeds):
-                    capture = simulate.render(rig, scene, image, conditions(albedo, seed))
+                    capture = render_cached(args.captures, f"{name}_{scene_name}_{albedo}_{seed}_{args.camera}",
+                                            lambda: simulate.render(rig, scene, image, conditions(albedo, seed)))
                     for method in args.methods.split(","):
                         t0 = time.perf_counter()
                         result = Scanner(spec, rig.calibration, method=method).scan(capture.image)
@@ -101,6 +122,90 @@ def main() -> None:
     Path(args.json).write_text(json.dumps({"camera": camera, "projector": projector, "rows": rows}, indent=1))
     if args.markdown:
         Path(args.markdown).write_text(markdown_table(rows))
+
+
+def method_specs(projector: tuple[int, int]) -> dict[str, patterns.PatternSpec]:
+    """Single-shot composite patterns and the multi-shot references of `--compare`."""
+    return {
+        "CP thesis 4-bit": patterns.thesis_spec(projector),
+        "CP sliscan 4-bit": patterns.default_spec(projector),
+        "Gray code 10-bit": patterns.PatternSpec(kind="graycode", projector_size=projector, orientation="rows"),
+        "Gray code 7-bit + 4-step phase": patterns.PatternSpec(kind="graycode", projector_size=projector,
+                                                               orientation="rows", code_width=8, steps=4),
+        "PMP 1,8,64 x 4": patterns.PatternSpec(kind="pmp", projector_size=projector, orientation="rows",
+                                               steps=4, frequencies=(1, 8, 64), a_p=0.5, b_p=0.5),
+    }
+
+
+def clean_conditions(seed: int) -> simulate.Conditions:
+    """Noise-free, linear projector, no blur, no ambient, uniform albedo 0.8, 8-bit output."""
+    return simulate.Conditions.ideal().with_(albedo=simulate.UniformAlbedo(0.8), supersample=3, bit_depth=8,
+                                             exposure=0.8, inverse_square=True, seed=seed)
+
+
+def compare(rig: simulate.Rig, projector: tuple[int, int], args: argparse.Namespace) -> None:
+    """Print and save the single-shot vs multi-shot table (`--compare`)."""
+    keep = [p for p in args.patterns.split(",") if p]
+    specs = {name: spec for name, spec in method_specs(projector).items() if not keep or name in keep}
+    yardstick = patterns.thesis_spec(projector)
+    conditions_of = {"clean": clean_conditions, "realistic": lambda seed: conditions("smooth", seed)}
+    print(f"{'method':32s} {'frames':>6s} {'scene':7s} {'conditions':10s} {'complete%':>9s} {'outlier%':>8s} "
+          f"{'rms mm':>8s} {'med mm':>7s} {'p95 mm':>7s} {'radius mm':>9s} {'rejected%':>9s} {'s':>5s}")
+    rows = []
+    for scene_name in [s for s in args.scenes.split(",") if s in ("sphere", "steps")]:
+        scene = SCENES[scene_name]()
+        for cond_name, make in conditions_of.items():
+            for seed in range(args.seeds):
+                for name, spec in specs.items():
+                    multi = spec.kind in ("pmp", "graycode")
+                    projected = sequences.render_frames(spec) if multi else patterns.render_pattern(spec)
+                    render = simulate.render_sequence if multi else simulate.render
+                    capture = render(rig, scene, projected, make(seed))
+                    frames = capture.images if multi else capture.image
+                    t0 = time.perf_counter()
+                    result = Scanner(spec, rig.calibration).scan(frames)
+                    seconds = time.perf_counter() - t0
+                    gross = np.where(capture.truth.lit, stripe_depth(capture.truth, yardstick, rig.calibration), 0)
+                    acc = surface_accuracy(result, capture.truth, gross)
+                    radius, rejected = (sphere_fit(result, capture.truth, (0.0, 0.0, 800.0), 122.555)
+                                        if scene_name == "sphere" else (float("nan"), float("nan")))
+                    row = dict(method=name, frames=spec.frame_count, scene=scene_name, conditions=cond_name,
+                               seed=seed, seconds=seconds, radius_mm=radius, fit_rejected=rejected,
+                               **acc.as_dict())
+                    rows.append(row)
+                    print(f"{name:32s} {spec.frame_count:6d} {scene_name:7s} {cond_name:10s} "
+                          f"{100 * acc.completeness:9.2f} {100 * acc.outliers:8.2f} {acc.rms_mm:8.2f} "
+                          f"{acc.median_mm:7.2f} {acc.p95_mm:7.2f} {radius:9.2f} {100 * rejected:9.1f} {seconds:5.1f}", flush=True)
+    Path(args.json).write_text(json.dumps({"camera": list(rig.calibration.camera.size), "projector": projector, "rows": rows}, indent=1))
+    if args.markdown:
+        Path(args.markdown).write_text(compare_markdown(rows))
+
+
+def compare_markdown(rows: list[dict]) -> str:
+    """The `--compare` rows as the README's Markdown table."""
+    lines = ["| method | frames | scene | conditions | completeness | outliers | RMS (mm) | median (mm) "
+             "| p95 (mm) | sphere radius (mm) (fit rejected) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        radius = "" if r["radius_mm"] != r["radius_mm"] else f"{r['radius_mm']:.2f} ({100 * r['fit_rejected']:.1f} %)"
+        lines.append(f"| {r['method']} | {r['frames']} | {r['scene']} | {r['conditions']} "
+                     f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {r['rms_mm']:.2f} "
+                     f"| {r['median_mm']:.2f} | {r['p95_mm']:.2f} | {radius} |")
+    return "\n".join(lines) + "\n"
+
+
+def render_cached(folder: str | None, key: str, render) -> simulate.Capture:
+    """`render()`, or the capture saved under `key` in `folder` by an earlier run (then saved there)."""
+    if folder is None:
+        return render()
+    path = Path(folder) / (key.replace(" ", "-") + ".npz")
+    if path.exists():
+        with np.load(path) as saved:
+            truth = simulate.GroundTruth(**{k[6:]: saved[k] for k in saved.files if k.startswith("truth_")})
+            return simulate.Capture(image=saved["image"], truth=truth)
+    capture = render()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, image=capture.image, **{f"truth_{k}": v for k, v in vars(capture.truth).items()})
+    return capture
 
 
 def markdown_table(rows: list[dict]) -> str:

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sliscan import patterns, simulate
+from sliscan import patterns, sequences, simulate
 from sliscan.formats import mat5, npz, ply, premat5
 from sliscan.formats.calibration import read_matrix_txt, write_matrix_txt
 from sliscan.reconstruct import triangulate_points
@@ -128,6 +128,15 @@ def test_simulate_writes_the_ground_truth(plane: tuple[Path, str]) -> None:
     assert capture.dtype == np.uint8 and capture.shape == CAMERA[::-1]
 
 
+def test_scan_timings_prints_every_stage(plane: tuple[Path, str]) -> None:
+    folder, _ = plane
+    stdout = ok("scan", "capture.png", "--pattern", "cp.json", "--calibration", "rig.json", "--timings",
+                cwd=folder).stdout.splitlines()
+    stages = [line.split()[0] for line in stdout[1:]]
+    assert stages == ["read", "demodulate", "decode", "triangulate", "write", "total"]
+    assert all(line.endswith(" ms") and float(line.split()[1]) >= 0 for line in stdout[1:])
+
+
 def test_scan_with_text_matrices_matches_the_json(plane: tuple[Path, str], tmp_path: Path) -> None:
     folder, _ = plane
     calibration = Calibration.load(folder / "rig.json")
@@ -180,7 +189,8 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("command", [[], ["pattern", "composite"], ["pattern", "carrier-only"], ["pattern", "modified"],
-                                     ["simulate"], ["scan"], ["calibrate"], ["demo"]])
+                                     ["pattern", "pmp"], ["pattern", "graycode"], ["simulate"], ["scan"], ["calibrate"],
+                                     ["demo"]])
 def test_help_has_examples(tmp_path: Path, command: list[str]) -> None:
     result = sliscan(*command, "--help", cwd=tmp_path)
     assert result.returncode == 0 and "Examples:" in result.stdout
@@ -253,3 +263,156 @@ def test_bad_input_is_one_line_and_writes_nothing(bad_inputs: Path, tmp_path: Pa
     assert result.stdout == ""
     assert listing(folder) == before  # nothing written, no input touched, no temporary left behind
 
+
+
+# --------------------------------------------------------------------------------------------
+# Multi-frame patterns: pattern -> simulate a sequence -> scan a folder, a glob or a list
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pmp_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3-step dual-frequency PMP sequence of the plane, simulated into cap/pmp_00.png .. cap/pmp_05.png."""
+    folder = tmp_path_factory.mktemp("pmp")
+    ok("pattern", "pmp", "--projector", PROJECTOR_ARG, "--steps", "3", "--frequencies", "1,16", "--gamma", "2.2",
+       "-o", "pat/pmp.json", cwd=folder)
+    ok("simulate", "--pattern", "pat/pmp.json", "--scene", "plane", "--camera", CAMERA_ARG, "--supersample", "1",
+       "--write-rig", "rig.json", "--truth", "truth.npz", "-o", "cap/pmp.png", cwd=folder)
+    return folder
+
+
+def test_pattern_pmp_writes_its_frames_and_lists_them(pmp_run: Path) -> None:
+    spec = PatternSpec.load(pmp_run / "pat/pmp.json")
+    assert spec.kind == "pmp" and spec.frames == tuple(f"pmp_{k:02d}.png" for k in range(6))
+    frames = np.stack([read_png(pmp_run / "pat" / name) for name in spec.frames])
+    np.testing.assert_array_equal(frames, np.round(sequences.render_frames(spec) * 255).astype(np.uint8))
+    assert sorted(p.name for p in (pmp_run / "cap").iterdir()) == [f"pmp_{k:02d}.png" for k in range(6)]
+
+
+def test_pattern_graycode_defaults_to_opencvs_sequence(tmp_path: Path) -> None:
+    result = ok("pattern", "graycode", "--projector", PROJECTOR_ARG, "-o", "gc.json", cwd=tmp_path)
+    assert "42 frames" in result.stdout
+    spec = PatternSpec.load(tmp_path / "gc.json")
+    assert spec == PatternSpec(kind="graycode", projector_size=PROJECTOR, orientation="both", b_p=0.5,
+                               frames=tuple(f"gc_{k:02d}.png" for k in range(42)))
+    assert np.array_equal(read_png(tmp_path / "gc_40.png"), np.full(PROJECTOR[::-1], 255, np.uint8))
+
+
+@pytest.mark.parametrize("captures", [["cap"], ["cap/pmp_*.png"], [f"cap/pmp_{k:02d}.png" for k in range(6)]])
+def test_scan_takes_a_folder_a_glob_or_a_list(pmp_run: Path, tmp_path: Path, captures: list[str]) -> None:
+    out = tmp_path / "plane.npz"
+    stdout = ok("scan", *captures, "--pattern", "pat/pmp.json", "--calibration", "rig.json", "--npz", out,
+                cwd=pmp_run).stdout
+    result = npz.read_scan_npz(out)
+    assert f"{int(result.valid.sum())} points" in stdout
+    assert result.valid.mean() > 0.9
+    # sub-pixel rows: one projector row is ~2.7 mm of depth at 800 mm (a 4-bit stripe of 48 rows ~128 mm); 3 steps
+    # of period 48 rows under noise: every point well within a row of the plane, RMS a fraction of a row
+    dz = result.points[result.valid][:, 2] - 800
+    assert np.abs(dz).max() < 2.5 and np.sqrt(np.mean(dz**2)) < 0.6
+
+
+@pytest.fixture()
+def pmp_bad(pmp_run: Path, tmp_path: Path) -> Path:
+    folder = tmp_path / "run"
+    shutil.copytree(pmp_run, folder)
+    frame = read_png(folder / "cap/pmp_00.png")
+    cv2.imwrite(str(folder / "pmp_small.png"), cv2.resize(frame, (CAMERA[0] // 2, CAMERA[1] // 2)))
+    return folder
+
+
+PMP_BAD: dict[str, tuple[tuple[str, ...], str]] = {
+    "a frame missing": (("cap/pmp_0[0-4].png",), "needs 6 frames (1 direction x 2 frequencies x 3 steps), got 5"),
+    "a frame of another size": (("cap/pmp_0[0-4].png", "pmp_small.png"), "pmp_small.png: the frame is 320x240"),
+    "an empty glob": (("cap/none_*.png",), "matches no files"),
+    "a composite pattern with many captures": (("cap",), "takes one capture, got 6"),
+}
+
+
+@pytest.mark.parametrize("case", PMP_BAD)
+def test_bad_sequences_are_one_line_and_write_nothing(pmp_bad: Path, case: str) -> None:
+    captures, message = PMP_BAD[case]
+    pattern = "pat/pmp.json"
+    if case.startswith("a composite"):
+        ok("pattern", "composite", "--projector", PROJECTOR_ARG, "-o", "cp.png", cwd=pmp_bad)
+        pattern = "cp.json"
+    before = listing(pmp_bad)
+    result = sliscan("scan", *captures, "--pattern", pattern, "--calibration", "rig.json", "--ply", "o/out.ply",
+                     cwd=pmp_bad)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], result.stderr
+    assert listing(pmp_bad) == before
+
+
+def test_bad_sequence_pattern_writes_nothing(tmp_path: Path) -> None:
+    result = sliscan("pattern", "graycode", "--projector", PROJECTOR_ARG, "--phase-steps", "2", "-o", "gc.json",
+                     cwd=tmp_path)
+    assert result.returncode == 2 and "steps >= 3" in result.stderr and len(result.stderr.splitlines()) == 1
+    assert listing(tmp_path) == {}
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan characterize: gamma -> pre-corrected carrier-only -> roll-off -> compensated pattern
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def characterized(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The characterisation workflow of the README, on the virtual rig's plane (gamma 2.2)."""
+    folder = tmp_path_factory.mktemp("characterize")
+    capture = ("--scene", "plane", "--camera", CAMERA_ARG, "--supersample", "1")
+    ok("pattern", "sine", "--projector", PROJECTOR_ARG, "-o", "sine.png", cwd=folder)
+    ok("simulate", "--pattern", "sine.json", *capture, "-o", "sine-capture.png", cwd=folder)
+    ok("characterize", "gamma", "sine-capture.png", "--pattern", "sine.json", "-o", "gamma.json", cwd=folder)
+    ok("pattern", "carrier-only", "--projector", PROJECTOR_ARG, "--thesis", "--from-characterization", "gamma.json",
+       "-o", "carriers.png", cwd=folder)
+    ok("simulate", "--pattern", "carriers.json", *capture, "-o", "carriers-capture.png", cwd=folder)
+    ok("characterize", "rolloff", "carriers-capture.png", "--pattern", "carriers.json", "--characterization",
+       "gamma.json", "-o", "rig-char.json", cwd=folder)
+    ok("pattern", "composite", "--projector", PROJECTOR_ARG, "--from-characterization", "rig-char.json",
+       "-o", "cp.png", cwd=folder)
+    return folder
+
+
+def test_characterize_gamma_prints_the_table_and_writes_the_response(characterized: Path) -> None:
+    char = json.loads((characterized / "gamma.json").read_text())
+    assert abs(char["gamma"]["gamma"] - 2.2) < 0.05 and char["rolloff"] is None
+    assert [row[0] for row in char["gamma"]["table"]] == [2.0, 2.4, 2.5, 3.0, 3.5]
+    assert PatternSpec.load(characterized / "carriers.json").response == tuple(char["gamma"]["response"])
+
+
+def test_pattern_from_characterization_is_compensated_and_decodes(characterized: Path) -> None:
+    char = json.loads((characterized / "rig-char.json").read_text())
+    assert char["gamma"] == json.loads((characterized / "gamma.json").read_text())["gamma"]
+    spec = PatternSpec.load(characterized / "cp.json")
+    default = patterns.default_spec(PROJECTOR)
+    assert spec.carriers == default.carriers and spec.response is not None
+    assert spec.weights[0] > 1.4 * spec.weights[-1]  # the highest carrier (bit 0) boosted against roll-off
+    assert sum(spec.weights) == pytest.approx(sum(default.weights))
+
+
+def test_characterize_bad_input_is_one_line(characterized: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "run"
+    shutil.copytree(characterized, folder)
+    flat = np.full((CAMERA[1], CAMERA[0]), 128, np.uint8)
+    cv2.imwrite(str(folder / "flat.png"), flat)
+    before = listing(folder)
+    cases = {("characterize", "gamma", "flat.png", "--pattern", "sine.json", "-o", "o.json"): "flat.png",
+             ("characterize", "gamma", "carriers-capture.png", "--pattern", "sine.json"): "carriers-capture.png",
+             ("characterize", "rolloff", "flat.png", "--pattern", "carriers.json", "-o", "o.json"): "flat.png",
+             ("characterize", "rolloff", "carriers-capture.png", "--pattern", "carriers.json", "--characterization",
+              "gamma.json", "-o", "gamma.json"): "gamma.json",
+             ("pattern", "composite", "--projector", PROJECTOR_ARG, "--thesis", "--gamma", "2.2",
+              "--from-characterization", "gamma.json", "-o", "o.png"): "--gamma"}
+    for args, name in cases.items():
+        result = sliscan(*args, cwd=folder)
+        lines = result.stderr.splitlines()
+        assert result.returncode == 2 and len(lines) == 1 and name in lines[0], (args, result.stderr)
+    assert listing(folder) == before
+
+
+@pytest.mark.parametrize("command", [["pattern", "sine"], ["characterize", "gamma"], ["characterize", "rolloff"]])
+def test_characterize_help_has_examples(tmp_path: Path, command: list[str]) -> None:
+    result = sliscan(*command, "--help", cwd=tmp_path)
+    assert result.returncode == 0 and "Examples:" in result.stdout

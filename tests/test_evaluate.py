@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sliscan import ScanResult, patterns, simulate
-from sliscan.evaluate import fit_sphere, sphere_fit
+from sliscan.evaluate import fit_sphere, robust_sphere, sphere_fit
 
 
 def _cap(rng, n, radius, noise_mm):
@@ -33,6 +33,17 @@ def test_sphere_fit_of_the_true_points_is_the_true_radius(small_rig):
     result = ScanResult(points=truth.points, valid=valid, texture=np.zeros(valid.shape, np.float32),
                         proj_map=truth.proj[..., 1], stripe=np.zeros(valid.shape, np.int16),
                         confidence=valid.astype(np.float32))
-    radius, rms = sphere_fit(result, truth, (0, 0, 800), 122.555)
-    assert radius == pytest.approx(122.555, abs=1e-3) and rms < 1e-3  # float32 points
+    radius, rejected = sphere_fit(result, truth, (0, 0, 800), 122.555)
+    assert radius == pytest.approx(122.555, abs=1e-3)  # float32 points
+    assert rejected < 0.01
     assert np.isnan(sphere_fit(result, truth, (0, 0, 800), 50.0)[0])  # no points on that sphere
+
+
+def test_robust_sphere_ignores_flying_points(rng):
+    points = _cap(rng, 4000, 122.555, 0.5)
+    flying = rng.choice(4000, 200, replace=False)
+    points[flying, 2] -= rng.uniform(50, 300, 200)  # 5 % wrong codes, far in front
+    assert abs(fit_sphere(points)[1] - 122.555) > 2  # a plain fit is dragged away
+    _, radius, rms, inliers = robust_sphere(points)
+    assert radius == pytest.approx(122.555, abs=0.1)
+    assert not inliers[flying].any() and inliers.mean() > 0.94

@@ -122,6 +122,26 @@ def atomic_path(path: str | os.PathLike, *, inputs: tuple[str | os.PathLike, ...
         raise
 
 
+@contextlib.contextmanager
+def atomic_paths(paths: list[Path], *, inputs: tuple[str | os.PathLike, ...] = ()) -> Iterator[list[Path]]:
+    """`atomic_path` for several files at once: yields their temporary paths; on success all are
+    renamed onto `paths`, on failure every temporary file is deleted and none is written."""
+    with contextlib.ExitStack() as stack:
+        yield [stack.enter_context(atomic_path(p, inputs=inputs)) for p in paths]
+
+
+def write_images(paths: list[Path], images: NDArray, *, inputs: tuple[str | os.PathLike, ...] = ()) -> list[Path]:
+    """Write several grey images (as `write_image`) all or none: ``images[k]`` to ``paths[k]``."""
+    import cv2
+
+    with atomic_paths(paths, inputs=inputs) as tmps:
+        for path, tmp, image in zip(paths, tmps, images):
+            arr = np.asarray(image)
+            if not cv2.imwrite(str(tmp), arr if arr.dtype in (np.uint8, np.uint16) else to_uint8(arr)):
+                raise InputError(f"{path}: cannot write an image with this file extension")
+    return list(paths)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write `data` to `path` through a temporary file and a rename."""
     with atomic_path(path) as tmp:

@@ -6,6 +6,17 @@ estimated from known world points and the pixels that see them, either by SVD (e
 `dlt_svd`) or by linear least squares with ``m34 = 1`` (eqs. 4.17-4.19, `dlt_least_squares`).
 `calibrate_points` calibrates both devices from the rows of a G file.
 
+From captured images (issue 5), on the decoded maps of a multi-shot sequence coding both
+projector directions (`sliscan.sequences.decode_frames`):
+
+- `calibrate_target`, the thesis's workflow (4.0-4.2): the circle centres of a 3-D target
+  (`sliscan.targets`) matched to its known world coordinates (`match_circles`), the projector
+  coordinates read there, the G rows and the DLT, with the perspective bias of the circle
+  centres removed (`ellipse_centres`);
+- `calibrate_board`, the planar workflow: chessboard corners in several poses (`board_view`),
+  the camera and the projector (an inverse camera) calibrated with OpenCV, intrinsics and lens
+  distortion included, and their relative pose; world = camera frame.
+
 Both estimators return the same normalised form: the first three entries of the third row have
 unit norm, so that row is the device's viewing direction and ``M[2] @ [Xw, Yw, Zw, 1]`` is the
 depth in mm in front of the device (positive for the calibration points).
@@ -16,17 +27,28 @@ References
    :doi:`10.1109/34.601246`
 .. [2] R. Hartley and A. Zisserman, *Multiple View Geometry in Computer Vision*, 2nd ed.,
    section 7.1 (the DLT for camera matrices) and 4.4.4 (normalisation).
+.. [3] J. Heikkila, "Geometric camera calibration using circular control points", IEEE TPAMI
+   22(10), 1066-1077 (2000) (the image of a circle's centre is not its ellipse's centre).
+   :doi:`10.1109/34.879788`
+.. [4] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11),
+   1330-1334 (2000) (OpenCV's `calibrateCamera`). :doi:`10.1109/34.888718`
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 
+import cv2
 import numpy as np
+import scipy.optimize
+import scipy.spatial
 from numpy.typing import ArrayLike, NDArray
 
-from sliscan._validate import InputError
-from sliscan.formats.premat5 import check_g, phase_to_pixel
+from sliscan._validate import InputError, check_finite_matrix
+from sliscan.formats.premat5 import check_g, phase_to_pixel, pixel_to_phase
+from sliscan.pmp import ProjectorMap
+from sliscan.targets import CircleTarget, corner_spacing, detect_chessboard, detect_circles, projector_points
 from sliscan.types import Calibration, Device
 
 #: Fewest points for a DLT: 11 unknowns, 2 equations per point.
@@ -298,3 +320,441 @@ def calibrate_points(g_rows: ArrayLike, camera_size: tuple[int, int], projector_
         residuals[name] = summarize_residuals(reprojection_residuals(matrix, world, pixels))
     return Calibration(devices["camera"], devices["projector"],
                        {"method": method, "residuals": residuals, "points": int(len(rows))})
+
+
+# --------------------------------------------------------------------------------------------
+# The thesis's workflow: a 3-D circle target (sections 4.0-4.2)
+# --------------------------------------------------------------------------------------------
+
+#: Default largest reprojection RMS (px) of a DLT that accepts a match of circles to the target.
+MAX_MATCH_RMS_PX = 2.0
+# Orderings of the circles that `match_circles` verifies with a DLT (the cheapest candidates).
+_MATCH_CANDIDATES = 12
+# Rotations tried when aligning the target's layout with the image, in degrees.
+_MATCH_ANGLES = np.radians(np.arange(0.0, 360.0, 2.0))
+# Rounds of the perspective-bias correction of circle centres (the second changes < 0.001 px).
+_BIAS_ITERATIONS = 2
+
+
+def _whiten(points: FloatArray) -> FloatArray:
+    """2-D points centred and scaled to unit covariance: what is left of an affine map is a
+    rotation or a reflection."""
+    centred = points - points.mean(axis=0)
+    eigval, eigvec = np.linalg.eigh(np.cov(centred.T))
+    return centred @ eigvec / np.sqrt(np.maximum(eigval, 1e-12 * eigval.max()))
+
+
+def _match_rms(world: FloatArray, pixels: FloatArray) -> tuple[float, FloatArray] | None:
+    """RMS reprojection error (px) and matrix of a DLT, or None if it fails or is left-handed."""
+    try:
+        matrix = dlt_svd(world, pixels)
+    except InputError:
+        return None
+    if np.linalg.det(matrix[:, :3]) <= 0:  # a mirrored camera: the ordering is a reflection
+        return None
+    return float(np.sqrt(np.mean(reprojection_residuals(matrix, world, pixels) ** 2))), matrix
+
+
+def match_circles(image_points: ArrayLike, world: ArrayLike, *, max_rms_px: float = MAX_MATCH_RMS_PX
+                  ) -> NDArray[np.intp]:
+    """Which detected circle is which circle of the target.
+
+    The target's centres, projected on their two principal axes, give its layout as seen
+    face-on; the layout and the image points are each whitened (centred, unit covariance), so
+    that an affine view of the layout differs from the image by a rotation or a reflection only.
+    Every rotation in 2-degree steps, mirrored or not, gives an assignment (Hungarian, squared
+    distances); the cheapest distinct ones are verified with a DLT (`dlt_svd`), reassigned by
+    reprojecting the target with it, and fitted again.  The ordering with the smallest RMS
+    reprojection error wins; mirrored cameras (``det M[:, :3] < 0``: a right-handed target
+    frame seen in a mirror) are refused.
+
+    Parameters
+    ----------
+    image_points : (M, 2) array
+        Detected circle centres ``(x, y)`` in pixels, ``M >= N`` (extra blobs are left out).
+    world : (N, 3) array
+        The target's circle centres in mm, in a right-handed frame, not coplanar.
+    max_rms_px : float
+        Largest RMS reprojection error (px) of an accepted ordering.
+
+    Returns
+    -------
+    order : (N,) int array
+        ``image_points[order[k]]`` is the image of ``world[k]``.
+
+    Raises
+    ------
+    InputError
+        Too few image points, no ordering within `max_rms_px`, or two orderings within it (a
+        target whose layout has a symmetry cannot be told apart).
+    """
+    pts = np.asarray(image_points, dtype=np.float64).reshape(-1, 2)
+    world = np.asarray(world, dtype=np.float64)
+    if len(pts) < len(world):
+        raise InputError(f"found {len(pts)} circles, the target has {len(world)}")
+    centred = world - world.mean(axis=0)
+    layout = _whiten(centred @ np.linalg.svd(centred, full_matrices=False)[2][:2].T)
+    image = _whiten(pts)
+    candidates: dict[tuple[int, ...], float] = {}
+    for mirror in (1.0, -1.0):
+        for angle in _MATCH_ANGLES:
+            c, s = np.cos(angle), np.sin(angle)
+            turned = layout @ np.array([[c, -s], [s, c]]).T * [1.0, mirror]
+            cost = scipy.spatial.distance.cdist(turned, image, "sqeuclidean")
+            rows, cols = scipy.optimize.linear_sum_assignment(cost)
+            candidates.setdefault(tuple(cols[np.argsort(rows)]), float(cost[rows, cols].sum()))
+    fits: dict[tuple[int, ...], float] = {}
+    for order in sorted(candidates, key=candidates.__getitem__)[:_MATCH_CANDIDATES]:
+        first = _match_rms(world, pts[list(order)])
+        if first is None:
+            continue
+        reprojected = Device(first[1], (1, 1)).project(world)
+        rows, cols = scipy.optimize.linear_sum_assignment(scipy.spatial.distance.cdist(reprojected, pts))
+        refined = tuple(int(k) for k in cols[np.argsort(rows)])
+        second = _match_rms(world, pts[list(refined)])
+        if second is not None:
+            fits[refined] = second[0]
+    ranked = sorted(fits, key=fits.__getitem__)
+    if not ranked or fits[ranked[0]] > max_rms_px:
+        best = f" (best reprojection RMS {fits[ranked[0]]:.3g} px)" if ranked else ""
+        raise InputError(f"cannot match the {len(pts)} circles found to the target's {len(world)}{best}; is the "
+                         "target file's frame right-handed, and does the camera see every circle?")
+    if len(ranked) > 1 and fits[ranked[1]] <= max_rms_px:
+        raise InputError(f"the target is ambiguous: two orderings of its circles fit (RMS {fits[ranked[0]]:.3g} "
+                         f"and {fits[ranked[1]]:.3g} px); give it a layout without symmetry")
+    return np.array(ranked[0], dtype=np.intp)
+
+
+def ellipse_centres(matrix: ArrayLike, target: CircleTarget) -> FloatArray:
+    """Centre of the image ellipse of every circle of a target, seen through `matrix`.
+
+    A circle of radius ``r`` in its plane is the conic ``diag(1, 1, -r**2)`` in in-plane
+    coordinates; the plane's homography ``H = M [u, v, C_h]`` maps it to the image conic
+    ``Q = H^-T diag(1, 1, -r**2) H^-1``, whose centre is ``-Q[:2, :2]^-1 Q[:2, 2]``.  Its
+    distance from ``M C_h`` (the image of the centre) is the perspective bias of a detected
+    circle centre [3]_.
+
+    Parameters
+    ----------
+    matrix : (3, 4) array
+        World (mm) -> pixel projection.
+    target : CircleTarget
+        With `normals` and `radius_mm`.
+
+    Returns
+    -------
+    centres : (N, 2) float64 array
+        ``(x, y)`` in pixels.
+    """
+    if target.normals is None:
+        raise InputError("the target has no normals and radius_mm: the ellipse centres are unknown")
+    m = check_finite_matrix("matrix", matrix, (3, 4))
+    n = target.normals
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(n, u)
+    h = np.stack([u @ m[:, :3].T, v @ m[:, :3].T, target.centres @ m[:, :3].T + m[:, 3]], axis=-1)
+    h_inv = np.linalg.inv(h)
+    q = np.swapaxes(h_inv, 1, 2) @ np.diag([1.0, 1.0, -target.radius_mm**2]) @ h_inv
+    return -np.linalg.solve(q[:, :2, :2], q[:, :2, 2:])[..., 0]
+
+
+def _brightness(maps: Mapping[str, ProjectorMap]) -> NDArray[np.float32]:
+    """The camera image under uniform light, from any decoded direction."""
+    if not maps:
+        raise InputError("no decoded projector maps")
+    return next(iter(maps.values())).brightness
+
+
+def calibrate_target(maps: Mapping[str, ProjectorMap], target: CircleTarget, projector_size: tuple[int, int], *,
+                     method: str = "svd", interpolate: bool = True,
+                     max_rms_px: float = MAX_MATCH_RMS_PX) -> tuple[Calibration, FloatArray]:
+    """Calibrate camera and projector from one capture of a 3-D circle target (thesis 4.0-4.4).
+
+    The circles are found in the decoded `brightness` (`sliscan.targets.detect_circles`),
+    matched to the target's circles (`match_circles`), the projector ``(xp, yp)`` is read at
+    each centre (`sliscan.targets.projector_points`: bilinear from valid pixels, a robust local
+    fit where the circle did not decode), and both devices are calibrated by the DLT
+    (`calibrate_points`).  With the target's normals and radius the camera centres are then
+    moved from the ellipse centres to the images of the circle centres (`ellipse_centres`,
+    with the calibration just found), the projector coordinates read again there, and the DLT
+    repeated: twice.
+
+    Parameters
+    ----------
+    maps : {"columns": ProjectorMap, "rows": ProjectorMap}
+        `sliscan.sequences.decode_frames` of a sequence coding both directions.
+    target : CircleTarget
+        The circles' world coordinates (mm).
+    projector_size : (W, H) tuple of int
+    method : {"svd", "lstsq"}
+        The DLT (thesis 4.3 or 4.4).
+    interpolate : bool
+        Sub-pixel maps (PMP, Gray code + phase): bilinear at the centres where possible.  False
+        for plain Gray code: a local fit everywhere.
+    max_rms_px : float
+        See `match_circles`.
+
+    Returns
+    -------
+    calibration : Calibration
+        As `calibrate_points`; ``extra`` also holds ``circles`` (N) and
+        ``perspective_bias_px`` (the largest correction applied, 0 without normals).
+    g_rows : (N, 7) float64 array
+        The G file's rows (``Xw Yw Zw xc yc xp_phase yp_phase``) of the final DLT.
+
+    Raises
+    ------
+    InputError
+        Too few circles, no match, a circle without projector coordinates, or a failed DLT.
+    """
+    brightness = _brightness(maps)
+    camera_size = (brightness.shape[1], brightness.shape[0])
+    found = detect_circles(brightness)
+    observed = found[match_circles(found, target.centres, max_rms_px=max_rms_px)]
+    neighbour = scipy.spatial.cKDTree(observed).query(observed, k=2)[0][:, 1]
+    half_window = max(3, int(np.median(neighbour) / 2))
+    camera, bias = observed, np.zeros_like(observed)
+    for step in range(_BIAS_ITERATIONS + 1):
+        projector = projector_points(maps, camera, half_window=half_window, interpolate=interpolate)
+        bad = np.flatnonzero(np.isnan(projector).any(axis=1))
+        if bad.size:
+            x, y = camera[bad[0]]
+            raise InputError(f"no projector coordinates decoded around circle {bad[0]} at ({x:.1f}, {y:.1f}) px "
+                             f"({bad.size} of {len(camera)} circles)")
+        rows = np.c_[target.centres, camera, pixel_to_phase(projector[:, 0], projector_size[0]),
+                     pixel_to_phase(projector[:, 1], projector_size[1])]
+        calibration = calibrate_points(rows, camera_size, projector_size, method=method)
+        if target.normals is None or step == _BIAS_ITERATIONS:
+            break
+        bias = ellipse_centres(calibration.camera.matrix, target) - calibration.camera.project(target.centres)
+        camera = observed - bias
+    extra = {**calibration.extra, "circles": len(rows),
+             "perspective_bias_px": float(np.max(np.linalg.norm(bias, axis=1)))}
+    return Calibration(calibration.camera, calibration.projector, extra), rows
+
+
+# --------------------------------------------------------------------------------------------
+# The planar workflow: chessboard poses, OpenCV calibration with lens distortion
+# --------------------------------------------------------------------------------------------
+
+#: Fewest good board views `calibrate_board` takes.
+MIN_BOARD_VIEWS = 3
+#: A view counts when at least this fraction of its corners have projector coordinates.
+MIN_PROJECTOR_CORNERS = 0.5
+# A view is flagged as an outlier when its RMS exceeds this multiple of the median view's RMS
+# and this many pixels.
+_OUTLIER_FACTOR = 2.0
+_OUTLIER_FLOOR_PX = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class BoardView:
+    """The chessboard corners of one pose, in the camera and in the projector.
+
+    Attributes
+    ----------
+    camera : (N, 2) float64 array
+        Corners ``(x, y)`` in camera pixels, OpenCV's order (along a board row first).
+    projector : (N, 2) float64 array
+        The same corners' ``(xp, yp)`` in projector pixels; NaN where not decoded.
+    """
+
+    camera: FloatArray
+    projector: FloatArray
+
+
+def board_points(inner_corners: tuple[int, int], square: float) -> NDArray[np.float32]:
+    """``(columns * rows, 3)`` board corners ``(i square, j square, 0)``, OpenCV's order."""
+    cols, rows = inner_corners
+    j, i = np.mgrid[0:rows, 0:cols]
+    return np.c_[i.ravel() * square, j.ravel() * square, np.zeros(cols * rows)].astype(np.float32)
+
+
+def board_view(maps: Mapping[str, ProjectorMap], inner_corners: tuple[int, int], *,
+               interpolate: bool = False) -> BoardView:
+    """Find a chessboard's corners in one decoded pose and read the projector there.
+
+    The corners come from the decoded `brightness` (the white frame;
+    `sliscan.targets.detect_chessboard`); each corner's projector ``(xp, yp)`` from a robust
+    local quadratic fit to the decoded pixels in a window of 0.8 corner spacings around it
+    (`sliscan.targets.local_fit`), which skips the black squares that do not decode.
+
+    Parameters
+    ----------
+    maps : {"columns": ProjectorMap, "rows": ProjectorMap}
+    inner_corners : (columns, rows) tuple of int
+        OpenCV's ``patternSize``, e.g. (9, 7).
+    interpolate : bool
+        See `sliscan.targets.projector_points` (False: the local fit everywhere).
+
+    Raises
+    ------
+    InputError
+        The board is not found, or fewer than half its corners have projector coordinates.
+    """
+    corners = detect_chessboard(_brightness(maps), inner_corners)
+    cols, rows = inner_corners
+    if corners is None:
+        raise InputError(f"no chessboard of {cols}x{rows} inner corners found")
+    half_window = max(3, int(0.4 * corner_spacing(corners, inner_corners)))
+    projector = projector_points(maps, corners, half_window=half_window, interpolate=interpolate)
+    decoded = int(np.all(np.isfinite(projector), axis=1).sum())
+    if decoded < MIN_PROJECTOR_CORNERS * len(corners):
+        raise InputError(f"only {decoded} of {len(corners)} board corners have decoded projector coordinates")
+    return BoardView(corners, projector)
+
+
+def _view_rms(objects: list[NDArray[np.float32]], images: list[NDArray[np.float32]], rvecs: Sequence[FloatArray],
+              tvecs: Sequence[FloatArray], k: FloatArray, dist: FloatArray) -> tuple[list[float], FloatArray]:
+    """Per-view RMS reprojection error (px) and every point's error, of one calibrated device."""
+    errors = [np.linalg.norm(cv2.projectPoints(o, r, t, k, dist)[0][:, 0] - i, axis=1)
+              for o, i, r, t in zip(objects, images, rvecs, tvecs)]
+    return [float(np.sqrt(np.mean(e**2))) for e in errors], np.concatenate(errors)
+
+
+def triangulate_correspondences(calibration: Calibration, camera_points: ArrayLike,
+                                projector_points_: ArrayLike) -> FloatArray:
+    """World points of camera <-> projector point pairs, both lens models applied.
+
+    Each device's pixels are undistorted to normalised coordinates (`cv2.undistortPoints`
+    with its ``intrinsics`` and ``distortion``; a device without intrinsics is a plain
+    pinhole), then the two rays are intersected linearly (`cv2.triangulatePoints`).
+
+    Parameters
+    ----------
+    calibration : Calibration
+    camera_points, projector_points_ : (N, 2) arrays
+        ``(xc, yc)`` and ``(xp, yp)`` in pixels.
+
+    Returns
+    -------
+    points : (N, 3) float64 array
+        World coordinates in mm.
+    """
+    rays, extrinsics = [], []
+    for device, pts in ((calibration.camera, camera_points), (calibration.projector, projector_points_)):
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 1, 2)
+        if device.intrinsics is None:
+            rays.append(pts[:, 0].T)
+            extrinsics.append(device.matrix)
+            continue
+        dist = np.zeros(5) if device.distortion is None else device.distortion
+        rays.append(cv2.undistortPoints(pts, device.intrinsics, dist)[:, 0].T.astype(np.float64))
+        extrinsics.append(np.linalg.solve(device.intrinsics, device.matrix))
+    homogeneous = cv2.triangulatePoints(extrinsics[0], extrinsics[1], rays[0], rays[1])
+    return (homogeneous[:3] / homogeneous[3]).T
+
+
+def board_geometry(points: ArrayLike, inner_corners: tuple[int, int], square: float) -> dict[str, float]:
+    """How flat and how regular triangulated board corners are.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Corners in OpenCV's order, NaN where missing.
+    inner_corners : (columns, rows) tuple of int
+    square : float
+        The board's square size (the unit of `points`).
+
+    Returns
+    -------
+    geometry : dict
+        ``planarity_rms``: RMS distance of the corners from their least-squares plane;
+        ``spacing_mean`` and ``spacing_std``: distance between neighbouring corners along
+        board rows and columns (all in the unit of `square`); ``spacing_error``: relative error
+        of the mean spacing, ``spacing_mean / square - 1``.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    finite = np.all(np.isfinite(pts), axis=1)
+    centred = pts[finite] - pts[finite].mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][2]
+    grid = pts.reshape(inner_corners[1], inner_corners[0], 3)
+    steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=a), axis=2).ravel() for a in (0, 1)])
+    steps = steps[np.isfinite(steps)]
+    return {"planarity_rms": float(np.sqrt(np.mean((centred @ normal) ** 2))),
+            "spacing_mean": float(steps.mean()), "spacing_std": float(steps.std()),
+            "spacing_error": float(steps.mean() / square - 1)}
+
+
+def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
+                    camera_size: tuple[int, int], projector_size: tuple[int, int], *,
+                    projector_distortion: bool = True) -> Calibration:
+    """Calibrate camera and projector (intrinsics, lens distortion, relative pose) from board views.
+
+    The camera is calibrated from the corners of every view (`cv2.calibrateCamera`, Zhang's
+    method [4]_), the projector as an inverse camera from the corners that have projector
+    coordinates, then the projector's pose relative to the camera from the corners both have
+    (`cv2.stereoCalibrate` with both intrinsics fixed).  Distortion: ``k1, k2, p1, p2`` (``k3``
+    fixed at 0: a few poses do not pin it down).  World = camera frame: the camera's matrix is
+    ``Kc [I | 0]``, the projector's ``Kp [R | t]`` (DESIGN.md), in the unit of `square`.
+
+    Parameters
+    ----------
+    views : sequence of BoardView
+        At least `MIN_BOARD_VIEWS` poses (`board_view`).
+    inner_corners : (columns, rows) tuple of int
+    square : float
+        Board square size (mm, or any unit: the world unit of the result).
+    camera_size, projector_size : (W, H) tuple of int
+    projector_distortion : bool
+        Estimate the projector's lens distortion (True) or fix it at 0 (False: a calibration
+        that `sliscan.reconstruct` can use today, as it does not yet undistort the projector).
+
+    Returns
+    -------
+    calibration : Calibration
+        Both devices with ``intrinsics`` and ``distortion``.  ``extra``: ``method``
+        (``"opencv-board"``), ``board`` (inner corners, square), ``residuals`` (camera and
+        projector RMS and max over every corner, px), ``stereo_rms_px``, ``views`` (per view:
+        ``camera_rms_px``, ``projector_rms_px``, ``corners``, ``projector_corners`` and the
+        `board_geometry` of its corners triangulated with the result) and ``outlier_views``
+        (indices of views whose camera or projector RMS exceeds twice the median view's and
+        0.5 px).
+
+    Raises
+    ------
+    InputError
+        Too few views, or `square` not positive.
+    """
+    if len(views) < MIN_BOARD_VIEWS:
+        raise InputError(f"need at least {MIN_BOARD_VIEWS} board views, got {len(views)}")
+    if not square > 0:
+        raise InputError(f"the square size must be positive, got {square}")
+    board = board_points(inner_corners, square)
+    decoded = [np.all(np.isfinite(v.projector), axis=1) for v in views]
+    camera_images = [v.camera.astype(np.float32) for v in views]
+    objects = [board[m] for m in decoded]
+    projector_images = [v.projector[m].astype(np.float32) for v, m in zip(views, decoded)]
+    shared_camera = [c[m] for c, m in zip(camera_images, decoded)]
+    flags = cv2.CALIB_FIX_K3
+    projector_flags = flags if projector_distortion else (
+        flags | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST)
+    _, kc, dc, rc, tc = cv2.calibrateCamera([board] * len(views), camera_images, tuple(camera_size), None, None,
+                                            flags=flags)
+    _, kp, dp, rp, tp = cv2.calibrateCamera(objects, projector_images, tuple(projector_size), None, None,
+                                            flags=projector_flags)
+    stereo = cv2.stereoCalibrate(objects, shared_camera, projector_images, kc, dc, kp, dp, tuple(camera_size),
+                                 flags=cv2.CALIB_FIX_INTRINSIC)
+    rotation, translation = stereo[5], stereo[6]
+    camera = Device(kc @ np.eye(3, 4), camera_size, intrinsics=kc, distortion=dc.ravel()[:5])
+    projector = Device(kp @ np.c_[rotation, translation], projector_size, intrinsics=kp, distortion=dp.ravel()[:5])
+    camera_rms, camera_errors = _view_rms([board] * len(views), camera_images, rc, tc, kc, dc)
+    projector_rms, projector_errors = _view_rms(objects, projector_images, rp, tp, kp, dp)
+    calibration = Calibration(camera, projector)
+    per_view = []
+    for k, view in enumerate(views):
+        points = np.full((len(board), 3), np.nan)
+        points[decoded[k]] = triangulate_correspondences(calibration, view.camera[decoded[k]],
+                                                         view.projector[decoded[k]])
+        per_view.append({"camera_rms_px": camera_rms[k], "projector_rms_px": projector_rms[k],
+                         "corners": len(board), "projector_corners": int(decoded[k].sum()),
+                         **board_geometry(points, inner_corners, square)})
+    limits = [max(_OUTLIER_FACTOR * float(np.median(rms)), _OUTLIER_FLOOR_PX) for rms in (camera_rms, projector_rms)]
+    outliers = [k for k in range(len(views)) if camera_rms[k] > limits[0] or projector_rms[k] > limits[1]]
+    extra = {"method": "opencv-board", "board": {"inner_corners": list(inner_corners), "square": float(square)},
+             "residuals": {"camera": summarize_residuals(camera_errors),
+                           "projector": summarize_residuals(projector_errors)},
+             "stereo_rms_px": float(stereo[0]), "views": per_view, "outlier_views": outliers}
+    return Calibration(camera, projector, extra)

@@ -1,7 +1,8 @@
 """The ``sliscan`` command (DESIGN.md, "The command line").
 
-Commands: ``pattern`` (``composite``, ``carrier-only``, ``modified``), ``simulate``, ``scan``,
-``calibrate`` and ``demo``.  Every command
+Commands: ``pattern`` (``composite``, ``carrier-only``, ``modified``, ``pmp``, ``graycode``),
+``simulate``, ``scan``, ``calibrate`` (from a G file), ``calibrate-target`` and ``calibrate-board``
+(from captured calibration sequences) and ``demo``.  Every command
 
 * checks its output paths first: none may be one of its input files or another of its outputs;
 * reads and checks every input before it computes anything, and writes only at the end, each
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import glob
 import os
 import sys
 import time
@@ -31,13 +33,15 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from sliscan import __version__, evaluate, patterns, simulate
-from sliscan._validate import InputError, atomic_path, read_image, write_image
-from sliscan.calibrate import calibrate_points
+from sliscan import __version__, evaluate, patterns, photometry, sequences, simulate
+from sliscan._validate import InputError, atomic_path, read_image, write_image, write_images
+from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, board_view, calibrate_board, calibrate_points,
+                               calibrate_target)
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
 from sliscan.pipeline import Scanner
-from sliscan.types import Calibration, PatternSpec, ScanResult
+from sliscan.targets import CircleTarget
+from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
 
 #: Exit status for bad input (a usage error, an unreadable or inconsistent file).
 BAD_INPUT = 2
@@ -298,7 +302,8 @@ Examples:
   sliscan pattern composite --projector 1024x768 -o cp.png
   sliscan simulate --pattern cp.json --scene sphere --write-rig rig.json -o capture.png
   sliscan scan capture.png --pattern cp.json --calibration rig.json --mat5 out/sphere --ply sphere.ply
-  sliscan calibrate G.byt --camera-size 2592x1944 --projector 1024x768 -o rig.json""")
+  sliscan calibrate G.byt --camera-size 2592x1944 --projector 1024x768 -o rig.json
+  sliscan calibrate-board pose_0/ pose_1/ pose_2/ --pattern gc.json --board 9x7 --square 75 -o rig.json""")
 @click.version_option(__version__, prog_name="sliscan")
 def cli() -> None:
     """Single-shot structured-light 3D scanning with the Gray code composite pattern."""
@@ -335,6 +340,9 @@ _pattern_options = _options(
     click.option("--pilot", type=PilotType(), help="Pilot carrier frequency, or 'none'."),
     click.option("--skip-zero-code/--keep-zero-code", default=None,
                  help="Never project the all-zero code (sliscan's best does; the thesis does not)."),
+    click.option("--from-characterization", "characterization", type=INPUT_FILE,
+                 help="Characterization JSON (sliscan characterize): pre-correct with its measured response "
+                      "and weight the carriers against its measured roll-off."),
     click.option("-o", "--output", type=OUTPUT_FILE, required=True,
                  help="Pattern image (.png or .bmp); the JSON goes beside it."),
 )
@@ -355,9 +363,11 @@ def _largest_bp(spec: PatternSpec, reserved: float = 0.0) -> float:
 def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: int | None,
                   carriers: tuple[float, ...] | None, weights: tuple[float, ...] | None, a_p: float | None,
                   b_p: float | None, gamma: float | None, orientation: str, pilot: float | str | None,
-                  skip_zero_code: bool | None, modified_frequency: float | None = None,
-                  modified_amplitude: float | None = None) -> PatternSpec:
+                  skip_zero_code: bool | None, characterization: Path | None = None,
+                  modified_frequency: float | None = None, modified_amplitude: float | None = None) -> PatternSpec:
     """The PatternSpec the `sliscan pattern` options describe (see `pattern composite --help`)."""
+    if characterization is not None and gamma is not None:
+        raise click.UsageError("--gamma and --from-characterization both set the pre-correction; give one")
     if thesis and (bits is not None or carriers is not None):
         raise click.UsageError("--thesis fixes the bits and the carriers; leave out --bits and --carriers")
     if carriers is not None and bits is not None and bits != len(carriers):
@@ -382,10 +392,14 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
         amplitude = modified_amplitude
         if amplitude is None:  # one more carrier's worth: B_p with the sine counted as a weight-1 carrier
             amplitude = _largest_bp(spec) * _weight_sum(spec) / (_weight_sum(spec) + 1)
-        return spec.with_(modified_amplitude=amplitude, b_p=b_p if b_p is not None else _largest_bp(spec, amplitude))
-    if b_p is None and any(v is not None for v in (bits, carriers, weights, a_p, pilot)):
-        b_p = _largest_bp(spec)  # the swing changed: fit B_p again
-    return spec if b_p is None else spec.with_(b_p=b_p)
+        spec = spec.with_(modified_amplitude=amplitude, b_p=b_p if b_p is not None else _largest_bp(spec, amplitude))
+    elif b_p is not None or any(v is not None for v in (bits, carriers, weights, a_p, pilot)):
+        spec = spec.with_(b_p=b_p if b_p is not None else _largest_bp(spec))  # the swing changed: fit B_p again
+    if characterization is None:
+        return spec
+    measured = photometry.Characterization.load(characterization)
+    with _about(characterization):  # compensated weights keep their sum, so B_p still fits
+        return measured.apply(spec)
 
 
 def _write_pattern(output: Path, spec: PatternSpec) -> None:
@@ -432,6 +446,190 @@ def pattern_modified(output: Path, **options: Any) -> None:
     _write_pattern(output, _pattern_spec("modified_composite", **options))
 
 
+def _write_sequence(output: Path, spec: PatternSpec) -> None:
+    """Write a multi-frame pattern's images and JSON; print what was written."""
+    paths, json_path = sequences.save_sequence(output, spec)
+    w, h = spec.projector_size
+    click.echo(f"wrote {json_path} and {len(paths)} frames {paths[0].name} .. {paths[-1].name}: {spec.kind} pattern "
+               f"for a {w}x{h} projector, {sequences.describe_frames(spec)}")
+
+
+_fringe_options = _options(
+    click.option("--ap", "a_p", type=click.FloatRange(0, 1), default=0.5, show_default=True,
+                 help="Mean drive A_p of the fringes (eq. 2.1)."),
+    click.option("--bp", "b_p", type=POSITIVE, default=0.5, show_default=True,
+                 help="Fringe amplitude B_p (eq. 2.1); A_p +/- B_p must stay in [0, 1]."),
+    click.option("--gamma", type=POSITIVE, default=1.0, show_default=True,
+                 help="Gamma pre-correction of the projector (1: none)."),
+    click.option("-o", "--output", type=OUTPUT_FILE, required=True,
+                 help="PatternSpec JSON (NAME.json); the frames NAME_00.png, NAME_01.png, ... go beside it."),
+)
+
+
+@pattern.command("pmp", epilog="""\b
+Examples:
+  sliscan pattern pmp --projector 1024x768 -o pmp/pmp.json              # 3 frequencies x 4 steps
+  sliscan pattern pmp --projector 1024x768 --steps 3 --frequencies 1,16 -o dual/pmp.json
+  sliscan pattern pmp --projector 1024x768 --frequencies 15,16 -o heterodyne/pmp.json
+  sliscan pattern pmp --projector 1280x800 --orientation both --gamma 2.2 -o cal/pmp.json""")
+@_projector_option(required=True, help="Projector resolution, e.g. 1024x768.")
+@click.option("--steps", type=click.IntRange(min=3), default=4, show_default=True,
+              help="Phase steps N per frequency.")
+@click.option("--frequencies", type=FLOATS, default="1,8,64", show_default=True,
+              help="Fringe frequencies in cycles per projector height (rows) or width (columns), increasing: "
+                   "the first 1 (hierarchical unwrapping), or a first pair differing by 1 (heterodyne).")
+@click.option("--orientation", type=click.Choice(SEQUENCE_ORIENTATIONS), default="rows", show_default=True,
+              help="Projector coordinate the fringes code; both: the columns' frames, then the rows'.")
+@_fringe_options
+def pattern_pmp(output: Path, projector: tuple[int, int], **fields: Any) -> None:
+    """Phase measuring profilometry (thesis section 2.6, eq. 2.1): N phase-shifted fringe images per frequency.
+
+    Frames in projection order: per direction (columns first for both), per frequency, the
+    steps n = 0 .. N-1.  `sliscan scan` takes the captures in that order.
+    """
+    _write_sequence(output, PatternSpec(kind="pmp", projector_size=projector, **fields))
+
+
+@pattern.command("graycode", epilog="""\b
+Examples:
+  sliscan pattern graycode --projector 1024x768 -o gc/gc.json       # OpenCV's 42 frames
+  sliscan pattern graycode --projector 1024x768 --orientation rows -o gc/rows.json
+  sliscan pattern graycode --projector 1024x768 --phase-steps 4 --code-width 8 -o hybrid/gc.json""")
+@_projector_option(required=True, help="Projector resolution, e.g. 1024x768.")
+@click.option("--orientation", type=click.Choice(SEQUENCE_ORIENTATIONS), default="both", show_default=True,
+              help="Projector coordinate(s) coded; both (OpenCV's sequence): the columns' frames, then the rows'.")
+@click.option("--phase-steps", "steps", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Phase-shifted fringes per direction refining the Gray code (0: none, else >= 3).")
+@click.option("--code-width", type=click.IntRange(min=1),
+              help="Projector lines per Gray code, a power of two [1; 8 with --phase-steps, whose fringe period "
+                   "is two codes].")
+@_fringe_options
+def pattern_graycode(output: Path, projector: tuple[int, int], code_width: int | None, **fields: Any) -> None:
+    """Classic Gray code: a pattern and its inverse per bit, then white and black (OpenCV's order).
+
+    With the defaults the frames are exactly OpenCV's structured_light::GrayCodePattern: the
+    column bits (most significant first, each pattern then its inverse), the row bits, white,
+    black.  --phase-steps appends phase-shifted fringes per direction (a Gray code + phase
+    shift hybrid); --ap, --bp and --gamma apply to those only.
+    """
+    width = code_width if code_width is not None else (8 if fields["steps"] else 1)
+    _write_sequence(output, PatternSpec(kind="graycode", projector_size=projector, code_width=width, **fields))
+
+
+@pattern.command("sine", epilog="""\b
+Examples:
+  sliscan pattern sine --projector 1024x768 -o sine.png        # 8 periods across the width
+  sliscan pattern sine --projector 1024x768 --cycles 12 -o sine.png
+  sliscan characterize gamma capture.png --pattern sine.json -o char.json""")
+@_projector_option(required=True, help="Projector resolution, e.g. 1024x768.")
+@click.option("--cycles", type=POSITIVE, default=8.0, show_default=True,
+              help="Periods across a 1024-pixel width (scaled to the projector's); low keeps blur off its harmonics.")
+@click.option("--orientation", type=click.Choice(["rows", "columns"]), default="rows", show_default=True,
+              help="Projector coordinate the decoding patterns code (the sine runs across it).")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True,
+              help="Pattern image (.png or .bmp); the JSON goes beside it.")
+def pattern_sine(projector: tuple[int, int], cycles: float, orientation: str, output: Path) -> None:
+    """A full-range sine (thesis fig. 3.6): the target of `sliscan characterize gamma`."""
+    _write_pattern(output, photometry.sine_target(projector, cycles=cycles, orientation=orientation))
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan characterize
+# --------------------------------------------------------------------------------------------
+
+
+@cli.group()
+def characterize() -> None:
+    """Measure the projector's gamma and the optics' roll-off (thesis 3.2) into a characterization JSON."""
+
+
+def _measured_capture(capture: Path, pattern_path: Path) -> tuple[NDArray[np.float32], PatternSpec]:
+    """The capture and the spec of the pattern it shows."""
+    return read_image(capture), PatternSpec.load(pattern_path)
+
+
+def _gamma_table(fit: photometry.GammaFit) -> Table:
+    """The thesis's table 3.2 with sliscan's continuous estimate."""
+    table = Table(title="projector gamma (thesis table 3.2)")
+    table.add_column("gamma", justify="right")
+    table.add_column("RMS error", justify="right")
+    for gamma, error in fit.table:
+        table.add_row(f"{gamma:.2f}", f"{error:.4f}")
+    table.add_row(f"[bold]{fit.gamma:.3f}[/bold]", "least", end_section=True)
+    return table
+
+
+@characterize.command("gamma", epilog="""\b
+Examples:
+  sliscan pattern sine --projector 1024x768 -o sine.png     # project it, capture it
+  sliscan characterize gamma capture.png --pattern sine.json
+  sliscan characterize gamma capture.png --pattern sine.json -o char.json""")
+@click.argument("capture", type=INPUT_FILE)
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
+              help="PatternSpec JSON of the projected sine (sliscan pattern sine).")
+@click.option("-o", "--output", type=OUTPUT_FILE, help="Write a characterization JSON with the measured gamma.")
+def characterize_gamma(capture: Path, pattern_path: Path, output: Path | None) -> None:
+    """Projector gamma from the capture of a sine on a plain matte target (any shape).
+
+    Prints the error of the thesis's candidate gammas and the gamma of least error; the
+    response table (camera level against drive level) goes into the JSON when the sine spans
+    the whole drive range.
+    """
+    _check_outputs([output], [capture, pattern_path])
+    image, spec = _measured_capture(capture, pattern_path)
+    with _about(capture, f"pattern {pattern_path}"):
+        fit = photometry.estimate_gamma(image, spec)
+    Console().print(_gamma_table(fit))
+    if output is not None:
+        photometry.Characterization(spec.projector_size, gamma=fit).save(output)
+    table = "a response table" if fit.response is not None else "no response table (the sine is not full range)"
+    wrote = f"wrote {output}" if output is not None else "wrote nothing (give -o)"
+    click.echo(f"gamma {fit.gamma:.3f} (+/- {fit.spread:.3f} across the frame) from {fit.samples} pixels, "
+               f"{table}; {wrote}")
+
+
+@characterize.command("rolloff", epilog="""\b
+Examples:
+  sliscan pattern carrier-only --projector 1024x768 --from-characterization char.json -o carriers.png
+  sliscan characterize rolloff capture.png --pattern carriers.json --characterization char.json -o rig-char.json
+  sliscan pattern composite --projector 1024x768 --from-characterization rig-char.json -o cp.png""")
+@click.argument("capture", type=INPUT_FILE)
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
+              help="PatternSpec JSON of the projected carrier-only pattern.")
+@click.option("--characterization", type=INPUT_FILE,
+              help="Characterization JSON with the measured gamma: models the projected light exactly "
+                   "(needed when the carrier-only pattern was not pre-corrected) and is copied into -o.")
+@click.option("-o", "--output", type=OUTPUT_FILE, help="Write a characterization JSON with the roll-off.")
+def characterize_rolloff(capture: Path, pattern_path: Path, characterization: Path | None,
+                         output: Path | None) -> None:
+    """Each carrier's attenuation by the optics, from the capture of a carrier-only pattern.
+
+    Prints the relative attenuation of every carrier and the weights that compensate it; the
+    JSON makes `sliscan pattern composite --from-characterization` apply them.
+    """
+    _check_outputs([output], [capture, pattern_path, characterization])
+    image, spec = _measured_capture(capture, pattern_path)
+    measured = (photometry.Characterization(spec.projector_size) if characterization is None
+                else photometry.Characterization.load(characterization))
+    gamma = measured.gamma
+    response = None if gamma is None else gamma.response or photometry.gamma_response(gamma.gamma)
+    with _about(capture, f"pattern {pattern_path}"):
+        rolloff = photometry.measure_rolloff(image, spec, response=response)
+    result = dataclasses.replace(measured, rolloff=rolloff)
+    weights = photometry.compensating_weights(rolloff, spec)
+    table = Table(title="carrier roll-off (thesis figs. 3.11-3.12)")
+    for name in ("carrier (cycles/width)", "attenuation", "compensating weight"):
+        table.add_column(name, justify="right")
+    for f, a, w in zip(rolloff.carriers, rolloff.attenuation, weights):
+        table.add_row(f"{f:.5g}", f"{a:.3f}", f"{w:.3f}")
+    Console().print(table)
+    if output is not None:
+        result.save(output)
+    wrote = f"wrote {output}" if output is not None else "wrote nothing (give -o)"
+    click.echo(f"{len(rolloff.carriers)} carriers from {rolloff.samples} pixels, weakest at "
+               f"{min(rolloff.attenuation):.0%} of the strongest; {wrote}")
+
+
 # --------------------------------------------------------------------------------------------
 # sliscan simulate
 # --------------------------------------------------------------------------------------------
@@ -463,14 +661,17 @@ Examples:
   sliscan simulate --pattern cp.json --scene steps --calibration rig.json --albedo checker -o capture.png
   sliscan simulate --pattern cp.json --scene out/sphere --camera 640x480 --truth truth.npz -o capture.png
   sliscan simulate --pattern cp.json --scene out/sphere --calibration rig.json -o capture.png \\
-      --projector-view pv.png --camera-view cv.png""")
+      --projector-view pv.png --camera-view cv.png
+  sliscan simulate --pattern pmp/pmp.json --scene sphere --camera 640x480 -o cap/pmp.png   # cap/pmp_00.png ...""")
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True, help="PatternSpec JSON of the pattern.")
 @click.option("--scene", default="sphere", show_default=True,
               help=f"{', '.join(SCENES)}, or the PREFIX of a mat5 scan (PREFIXX.byt ...).")
 @_calibration_options
 @_camera_option(help=f"Camera size of the virtual rig (or of --camera-matrix) [{THESIS_CAMERA[0]}x{THESIS_CAMERA[1]}].")
 @click.option("--write-rig", type=OUTPUT_FILE, help="Save the calibration used (JSON).")
-@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Capture image (8-bit PNG).")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True,
+              help="Capture image (8-bit PNG); for a multi-frame pattern OUT.png means OUT_00.png, OUT_01.png, "
+                   "... one per frame.")
 @click.option("--albedo", type=click.Choice(list(ALBEDOS)), default="uniform", show_default=True,
               help="Surface texture: 0.8 everywhere, smooth random 0.15-1, or a 40 mm checker.")
 @click.option("--ambient", type=click.FloatRange(min=0), default=0.1, show_default=True,
@@ -495,13 +696,21 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     The rig is --calibration (or --camera-matrix/--projector-matrix) if given, else the
     built-in one: the thesis's set-up with the projector 200 mm above the camera, both aimed at
     a point 800 mm away.  Scenes are placed at the rig's working distance.
+
+    A multi-frame pattern (pmp, graycode) gives one capture per frame, OUT_00.png,
+    OUT_01.png, ... in the pattern's order, each with its own noise, of one scene under one
+    set of conditions (one ground truth).
     """
     if calibration is not None and camera is not None:
         raise click.UsageError("--camera sets the virtual rig's size; a calibration JSON has its own")
     mat5_prefix = None if scene in SCENES else Path(scene)
-    _check_outputs([output, write_rig, truth, projector_view, camera_view],
-                   [pattern_path, calibration, camera_matrix, projector_matrix, *_mat5_files(mat5_prefix)])
     spec = PatternSpec.load(pattern_path)
+    multi = spec.kind in MULTI_FRAME_KINDS
+    if multi and (projector_view is not None or camera_view is not None):
+        raise click.UsageError("--projector-view and --camera-view need a single-image pattern, not a sequence")
+    outputs = sequences.indexed_paths(output, spec.frame_count) if multi else [output]
+    _check_outputs([*outputs, write_rig, truth, projector_view, camera_view],
+                   [pattern_path, calibration, camera_matrix, projector_matrix, *_mat5_files(mat5_prefix)])
     calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=camera,
                               projector_size=spec.projector_size)
     if calib is None:
@@ -513,13 +722,18 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
             rig = simulate.Rig(calib)
     surface, grid = _load_scene(scene, rig)
     conditions = _conditions(**physics)
-    projected = patterns.render_pattern(spec)
+    projected = None if multi else patterns.render_pattern(spec)
     with _progress(2) as stage:
         stage("render")
-        capture = simulate.render(rig, surface, projected, conditions)
+        if projected is None:
+            capture = simulate.render_sequence(rig, surface, sequences.render_frames(spec), conditions)
+            images = capture.images
+        else:
+            capture = simulate.render(rig, surface, projected, conditions)
+            images = capture.image[None]
         stage("write")
-        write_image(output, capture.image)
-        written = [str(output)]
+        write_images(outputs, images)
+        written = [str(output) if len(outputs) == 1 else f"{outputs[0]} .. {outputs[-1]}"]
         if write_rig is not None:
             rig.calibration.save(write_rig)
             written.append(str(write_rig))
@@ -537,20 +751,59 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
                 written.append(str(path))
     w, h = rig.camera.size
     lit = float(np.mean(capture.truth.lit))
-    click.echo(f"wrote {', '.join(written)}: {w}x{h} capture of the {scene} scene ({lit:.0%} of pixels lit)")
+    what = f"{len(outputs)} {w}x{h} captures" if multi else f"{w}x{h} capture"
+    click.echo(f"wrote {', '.join(written)}: {what} of the {scene} scene ({lit:.0%} of pixels lit)")
 
 
 # --------------------------------------------------------------------------------------------
 # sliscan scan
 # --------------------------------------------------------------------------------------------
 
+#: File name endings `sliscan scan` takes from a folder.
+IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg", ".pgm", ".ppm")
+
+
+def _capture_files(args: Sequence[Path]) -> list[Path]:
+    """The capture files named on the command line, in order: a file as given, a folder's image
+    files (`IMAGE_SUFFIXES`) and a glob's matches each sorted by name."""
+    files: list[Path] = []
+    for arg in args:
+        if arg.is_dir():
+            found = sorted(p for p in arg.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+            if not found:
+                raise InputError(f"{arg}: the folder holds no image files ({', '.join(IMAGE_SUFFIXES)})")
+        elif any(c in str(arg) for c in "*?["):
+            found = sorted(Path(p) for p in glob.glob(str(arg)))
+            if not found:
+                raise InputError(f"{arg}: matches no files")
+        else:
+            found = [arg]
+        files += found
+    return files
+
+
+def _read_frames(files: Sequence[Path]) -> list[NDArray[np.float32]]:
+    """Read capture files; all must have the size of the first."""
+    frames = [read_image(files[0])]
+    for path in files[1:]:
+        frames.append(read_image(path))
+        if frames[-1].shape != frames[0].shape:
+            (h0, w0), (h, w) = frames[0].shape, frames[-1].shape
+            raise InputError(f"{path}: the frame is {w}x{h} but {files[0]} is {w0}x{h0}")
+    return frames
+
+
 
 @cli.command(epilog="""\b
 Examples:
   sliscan scan capture.png --pattern cp.json --calibration rig.json --mat5 out/sphere --ply sphere.ply
   sliscan scan capture.png --pattern cp.json --camera-matrix cam.txt --projector-matrix proj.txt --npz scan.npz
-  sliscan scan capture.png --pattern cp.json --calibration rig.json --method bandpass --ply sphere.ply""")
-@click.argument("capture", type=INPUT_FILE)
+  sliscan scan capture.png --pattern cp.json --calibration rig.json --method bandpass --ply sphere.ply
+  sliscan scan capture.png --pattern cp.json --calibration rig.json --timings             # ms per stage
+  sliscan scan cap/ --pattern pmp/pmp.json --calibration rig.json --ply sphere.ply        # a folder
+  sliscan scan 'cap/pmp_*.png' --pattern pmp/pmp.json --calibration rig.json --npz s.npz  # a glob
+  sliscan scan gc_00.png gc_01.png ... gc_41.png --pattern gc.json --calibration rig.json --ply s.ply""")
+@click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
               help="PatternSpec JSON of the projected pattern.")
 @_calibration_options
@@ -560,24 +813,32 @@ Examples:
 @click.option("--npz", type=OUTPUT_FILE, help="Write every array of the scan to one npz file.")
 @click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
               help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
-def scan(capture: Path, pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
+@click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
+def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str) -> None:
-    """Reconstruct 3D points from one camera capture of a composite pattern.
+         method: str, timings: bool) -> None:
+    """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
+    frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them.
 
-    The capture must have the calibrated camera's size.  A --camera-matrix/--projector-matrix
+    CAPTURES are image files, folders (their image files, sorted by name) or quoted globs
+    (sorted by name), taken in the order given: name frames with zero-padded numbers.  Every
+    capture must have the calibrated camera's size.  A --camera-matrix/--projector-matrix
     pair takes its sizes from the capture and the pattern.  Writes exactly the outputs asked
     for (creating their folders) and prints the number of points, the completeness of the frame
     and the seconds per stage.
     """
-    _check_outputs([*_mat5_files(mat5_prefix), ply, npz], [capture, pattern_path, calibration, camera_matrix,
+    files = _capture_files(captures)
+    _check_outputs([*_mat5_files(mat5_prefix), ply, npz], [*files, pattern_path, calibration, camera_matrix,
                                                              projector_matrix])
     with _progress(3) as stage:
         stage("read")
         t0 = time.perf_counter()
         spec = PatternSpec.load(pattern_path)
-        image = read_image(capture)
-        h, w = image.shape
+        if spec.kind not in MULTI_FRAME_KINDS and len(files) != 1:
+            raise InputError(f"{pattern_path}: a {spec.kind} pattern takes one capture, got {len(files)}")
+        frames = _read_frames(files)
+        capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
+        h, w = frames[0].shape
         calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=(w, h),
                                   projector_size=spec.projector_size)
         if calib is None:
@@ -592,7 +853,7 @@ def scan(capture: Path, pattern_path: Path, calibration: Path | None, camera_mat
         stage("scan")
         t1 = time.perf_counter()
         with _about(capture, f"pattern {pattern_path}"):
-            result = scanner.scan(image)
+            result = scanner.scan(frames if spec.kind in MULTI_FRAME_KINDS else frames[0])
         stage("write")
         t2 = time.perf_counter()
         written = _write_scan(result, mat5_prefix=mat5_prefix, ply=ply, npz=npz)
@@ -603,6 +864,9 @@ def scan(capture: Path, pattern_path: Path, calibration: Path | None, camera_mat
     wrote = f"wrote {', '.join(written)}" if written else "wrote nothing (give --mat5, --ply or --npz)"
     click.echo(f"{n} points ({n / result.valid.size:.1%} of the {w}x{h} frame) in {t3 - t0:.2f} s "
                f"({times}); {wrote}")
+    if timings:
+        for name, seconds in {**stages, "total": t3 - t0}.items():
+            click.echo(f"  {name:12s} {1e3 * seconds:10.1f} ms")
 
 
 # --------------------------------------------------------------------------------------------
@@ -646,6 +910,166 @@ def calibrate(g_file: Path, camera: tuple[int, int], projector: tuple[int, int],
     res = calib.extra["residuals"]
     residuals = "; ".join(f"{name} RMS {r['rms_px']:.3g} px, max {r['max_px']:.3g} px" for name, r in res.items())
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} points; reprojection {residuals}")
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan calibrate-target, calibrate-board: calibration from captured images (issue 5)
+# --------------------------------------------------------------------------------------------
+
+
+def _sequence_spec(pattern_path: Path) -> PatternSpec:
+    """A multi-frame PatternSpec coding both projector directions (calibration needs xp and yp)."""
+    spec = PatternSpec.load(pattern_path)
+    if spec.kind not in MULTI_FRAME_KINDS or spec.orientation != "both":
+        raise InputError(f"{pattern_path}: calibration needs a pmp or graycode sequence with orientation 'both' "
+                         f"(columns and rows), got {spec.kind} {spec.orientation}")
+    return spec
+
+
+def _subpixel(spec: PatternSpec) -> bool:
+    """Whether the decoded maps are sub-pixel (PMP, Gray code + phase): interpolate them directly."""
+    return spec.kind == "pmp" or spec.steps > 0
+
+
+def _residual_summary(calib: Calibration) -> str:
+    res = calib.extra["residuals"]
+    return "; ".join(f"{name} RMS {r['rms_px']:.3g} px, max {r['max_px']:.3g} px" for name, r in res.items())
+
+
+@cli.command("calibrate-target", epilog="""\b
+Examples:
+  sliscan calibrate-target cap/ --pattern pmp/pmp.json --target target.json -o rig.json
+  sliscan calibrate-target 'cap/gc_*.png' --pattern gc/gc.json --target target.json -o rig.json \\
+      --g-file G.byt --method lstsq --cam-txt cam.txt --proj-txt proj.txt
+\b
+target.json: {"circles": [[Xw, Yw, Zw], ...], "normals": [[nx, ny, nz], ...], "radius_mm": 10}
+(centres in mm, at least 6, not all in one plane; normals and radius optional, for the
+perspective correction of the circle centres).""")
+@click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
+              help="PatternSpec JSON of the sequence (pmp or graycode, orientation both).")
+@click.option("--target", "target_path", type=INPUT_FILE, required=True,
+              help="The target's circle centres (JSON, see below).")
+@click.option("--method", type=click.Choice(["svd", "lstsq"]), default="svd", show_default=True,
+              help="DLT by SVD (thesis 4.3) or by least squares with m34 = 1 (4.4).")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
+@click.option("--g-file", type=OUTPUT_FILE, help="Also write the calibration grid (G file: .byt binary, else text).")
+@click.option("--cam-txt", type=OUTPUT_FILE, help="Also write the camera matrix as text (the thesis's cam.txt).")
+@click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
+def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_path: Path, method: str,
+                         output: Path, g_file: Path | None, cam_txt: Path | None, proj_txt: Path | None) -> None:
+    """Calibrate camera and projector from one capture of a 3-D circle target (thesis 4.0-4.4).
+
+    CAPTURES are the frames of the sequence (files, folders or quoted globs, in the order of
+    the pattern's JSON).  The circles are found in the white (or mean) image and matched to the
+    target's circles, the projector coordinates are read at their centres, and both devices are
+    calibrated by the DLT.  Prints the reprojection residuals.
+    """
+    files = _capture_files(captures)
+    _check_outputs([output, g_file, cam_txt, proj_txt], [*files, pattern_path, target_path])
+    spec = _sequence_spec(pattern_path)
+    target = CircleTarget.load(target_path)
+    capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
+    with _progress(3) as stage:
+        stage("read")
+        frames = _read_frames(files)
+        stage("decode")
+        with _about(capture, f"pattern {pattern_path}"):
+            maps = sequences.decode_frames(frames, spec)
+        stage("calibrate")
+        with _about(capture, f"target {target_path}"):
+            calib, rows = calibrate_target(maps, target, spec.projector_size, method=method,
+                                           interpolate=_subpixel(spec))
+        calib.save(output)
+    written = [str(output)]
+    if g_file is not None:
+        premat5.write_g(g_file, rows)
+        written.append(str(g_file))
+    for path, device in ((cam_txt, calib.camera), (proj_txt, calib.projector)):
+        if path is not None:
+            write_matrix_txt(path, device.matrix)
+            written.append(str(path))
+    click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} circles (perspective bias "
+               f"{calib.extra['perspective_bias_px']:.2g} px corrected); reprojection {_residual_summary(calib)}")
+
+
+def _board_table(calib: Calibration, poses: Sequence[Path]) -> Table:
+    """Per-view reprojection RMS and the geometry of the triangulated corners."""
+    table = Table(title="board views")
+    for name in ("pose", "camera RMS px", "projector RMS px", "corners", "flatness RMS", "spacing error"):
+        table.add_column(name, justify="left" if name == "pose" else "right")
+    for k, (pose, view) in enumerate(zip(poses, calib.extra["views"])):
+        flag = " (outlier)" if k in calib.extra["outlier_views"] else ""
+        table.add_row(f"{pose.name}{flag}", f"{view['camera_rms_px']:.3f}", f"{view['projector_rms_px']:.3f}",
+                      f"{view['projector_corners']}/{view['corners']}", f"{view['planarity_rms']:.3g}",
+                      f"{view['spacing_error']:+.2%}")
+    return table
+
+
+@cli.command("calibrate-board", epilog="""\b
+Examples:
+  sliscan calibrate-board pose_0/ pose_1/ pose_2/ --pattern gc/gc.json --board 9x7 --square 75 -o rig.json
+  sliscan calibrate-board capture_* --pattern gc.json --board 9x7 --square 25 --no-projector-distortion -o rig.json
+\b
+Each POSE is a folder holding the frames of one board pose, sorted by name in the pattern's
+order (OpenCV's Gray code order for kind graycode: column bits, row bits, each pattern then its
+inverse, then white and black).""")
+@click.argument("poses", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
+              help="PatternSpec JSON of the sequence (pmp or graycode, orientation both).")
+@click.option("--board", type=SIZE, required=True,
+              help="Inner corners of the chessboard, COLUMNSxROWS (OpenCV's pattern size), e.g. 9x7.")
+@click.option("--square", type=POSITIVE, required=True,
+              help="Square size (mm, or any unit: the unit of the world coordinates).")
+@click.option("--projector-distortion/--no-projector-distortion", default=True, show_default=True,
+              help="Estimate the projector's lens distortion, or fix it at 0 (sliscan scan cannot yet undistort "
+                   "the projector).")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
+def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tuple[int, int], square: float,
+                        projector_distortion: bool, output: Path) -> None:
+    """Calibrate camera and projector (intrinsics, lens distortion, pose) from chessboard poses.
+
+    Per POSE: the board's inner corners are found in the white frame and each corner's projector
+    coordinates are fitted to the decoded pixels around it; then OpenCV calibrates the camera,
+    the projector as an inverse camera, and their relative pose.  The calibration JSON has the
+    world in the camera frame: matrix = K [R | t] with intrinsics and distortion.  A pose whose
+    board is not found (or does not decode, or lacks frames) is skipped with a warning while at
+    least 3 good poses remain.  Prints per-pose reprojection RMS, outlier poses, and the
+    flatness and corner spacing of the board triangulated with the result.
+    """
+    spec = _sequence_spec(pattern_path)
+    pose_files = {pose: _capture_files([pose]) for pose in poses}
+    _check_outputs([output], [pattern_path, *(f for files in pose_files.values() for f in files)])
+    views: list[BoardView] = []
+    used: list[Path] = []
+    shape = None
+    with _progress(len(poses) + 1) as stage:
+        for pose, files in pose_files.items():
+            stage(f"pose {pose.name}")
+            frames = _read_frames(files)
+            if shape is not None and frames[0].shape != shape:
+                raise InputError(f"{files[0]}: the frame is {frames[0].shape[1]}x{frames[0].shape[0]} but the first "
+                                 f"pose's are {shape[1]}x{shape[0]}")
+            shape = frames[0].shape
+            try:
+                with _about(pose):
+                    views.append(board_view(sequences.decode_frames(frames, spec), board,
+                                            interpolate=_subpixel(spec)))
+                used.append(pose)
+            except InputError as exc:
+                click.echo(f"warning: {exc}; skipping this pose", err=True)
+        if len(views) < MIN_BOARD_VIEWS:
+            raise InputError(f"only {len(views)} of {len(poses)} poses are usable; calibration needs at least "
+                             f"{MIN_BOARD_VIEWS}")
+        stage("calibrate")
+        calib = calibrate_board(views, board, square, (shape[1], shape[0]), spec.projector_size,
+                                projector_distortion=projector_distortion)
+        calib.save(output)
+    Console().print(_board_table(calib, used))
+    outliers = calib.extra["outlier_views"]
+    flagged = f"; outlier poses: {', '.join(str(used[k]) for k in outliers)}" if outliers else ""
+    click.echo(f"wrote {output}: {len(views)} of {len(poses)} poses, {board[0]}x{board[1]} corners; reprojection "
+               f"{_residual_summary(calib)}; stereo RMS {calib.extra['stereo_rms_px']:.3g} px{flagged}")
 
 
 # --------------------------------------------------------------------------------------------

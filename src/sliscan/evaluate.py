@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 
 from sliscan.patterns import stripe_center, stripe_of_line
 from sliscan.reconstruct import triangulate
-from sliscan.simulate import GroundTruth
+from sliscan.simulate import Conditions, GroundTruth
 from sliscan.types import Calibration, PatternSpec, ScanResult
 
 
@@ -87,8 +87,52 @@ def oracle_points(truth: GroundTruth, spec: PatternSpec, calibration: Calibratio
     return triangulate(stripe_center(stripe, spec), calibration, orientation=spec.orientation, valid=stripe >= 0)
 
 
+@dataclass(frozen=True)
+class SurfaceAccuracy:
+    """3D figures of any scan (any pattern kind) against the true surface; mm and fractions."""
+
+    lit_pixels: int
+    valid_pixels: int
+    completeness: float
+    outliers: float
+    rms_mm: float
+    median_mm: float
+    p95_mm: float
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def surface_accuracy(result: ScanResult, truth: GroundTruth, gross_mm: float | NDArray[np.floating]) -> SurfaceAccuracy:
+    """Completeness, outliers and 3D error of a scan against the virtual rig's ground truth.
+
+    Parameters
+    ----------
+    result : ScanResult
+        The scan of a rendered capture (single- or multi-frame).
+    truth : GroundTruth
+        From `sliscan.simulate.render` / `render_sequence` for that capture.
+    gross_mm : float or (H, W) array
+        A valid point farther than this from its pixel's true surface point is an outlier (so
+        is a valid point where the camera sees no surface).  `accuracy` passes one stripe's
+        depth of the composite pattern; comparisons across pattern kinds pass one yardstick
+        for all of them.
+    """
+    lit, valid = truth.lit, result.valid
+    on_surface = valid & truth.surface
+    errors = _errors(result.points, truth, on_surface)
+    far = np.zeros_like(valid)
+    far[on_surface] = errors > np.broadcast_to(np.asarray(gross_mm, dtype=np.float64), valid.shape)[on_surface]
+    n_lit, n_valid = int(lit.sum()), int(valid.sum())
+    rms, med, p95 = _stats(errors)
+    return SurfaceAccuracy(lit_pixels=n_lit, valid_pixels=n_valid,
+                           completeness=float((valid & lit).sum() / max(n_lit, 1)),
+                           outliers=float((far | (valid & ~truth.surface)).sum() / max(n_valid, 1)),
+                           rms_mm=rms, median_mm=med, p95_mm=p95)
+
+
 def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> Accuracy:
-    """Compare a scan with the virtual rig's ground truth.
+    """Compare a composite-pattern scan with the virtual rig's ground truth.
 
     Parameters
     ----------
@@ -102,25 +146,17 @@ def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibrat
     stripes = true_stripes(truth, spec)
     lit = stripes >= 0
     valid = result.valid
-    n_lit = int(lit.sum())
     correct = valid & lit & (result.stripe == stripes)
-    on_surface = valid & truth.surface
-    errors = _errors(result.points, truth, on_surface)
-    depth = stripe_depth(truth, spec, calibration)
-    far = np.zeros_like(valid)
-    far[on_surface] = errors > np.where(lit[on_surface], depth[on_surface], 0)
-    outliers = far | (valid & ~truth.surface)
+    surface = surface_accuracy(result, truth, np.where(lit, stripe_depth(truth, spec, calibration), 0))
     oracle = oracle_points(truth, spec, calibration)
     oracle_err = _errors(oracle, truth, lit & np.all(np.isfinite(oracle), axis=-1))
-    rms, med, p95 = _stats(errors)
     orms, omed, _ = _stats(oracle_err)
-    n_valid = int(valid.sum())
-    return Accuracy(lit_pixels=n_lit, valid_pixels=n_valid,
-                    completeness=float((valid & lit).sum() / max(n_lit, 1)),
-                    stripe_accuracy=float(correct.sum() / max(n_lit, 1)),
-                    wrong_stripe=float((valid & lit & ~correct).sum() / max(n_valid, 1)),
-                    outliers=float(outliers.sum() / max(n_valid, 1)),
-                    rms_mm=rms, median_mm=med, p95_mm=p95, oracle_rms_mm=orms, oracle_median_mm=omed)
+    return Accuracy(lit_pixels=surface.lit_pixels, valid_pixels=surface.valid_pixels,
+                    completeness=surface.completeness,
+                    stripe_accuracy=float(correct.sum() / max(surface.lit_pixels, 1)),
+                    wrong_stripe=float((valid & lit & ~correct).sum() / max(surface.valid_pixels, 1)),
+                    outliers=surface.outliers, rms_mm=surface.rms_mm, median_mm=surface.median_mm,
+                    p95_mm=surface.p95_mm, oracle_rms_mm=orms, oracle_median_mm=omed)
 
 
 def fit_sphere(points: NDArray[np.floating]) -> tuple[NDArray[np.float64], float, float]:
@@ -154,16 +190,80 @@ def fit_sphere(points: NDArray[np.floating]) -> tuple[NDArray[np.float64], float
     return fit.x[:3], float(fit.x[3]), float(np.sqrt(np.mean(fit.fun**2)))
 
 
-def sphere_fit(result: ScanResult, truth: GroundTruth, centre: ArrayLike, radius: float) -> tuple[float, float]:
-    """Radius (mm) of the sphere fitted to the scan's valid points whose true point lies on the
-    sphere of `centre` and `radius` (mm), and the RMS distance (mm) of those points to it.
+def robust_sphere(points: NDArray[np.floating], *, rounds: int = 5,
+                  cut: float = 3.0) -> tuple[NDArray[np.float64], float, float, NDArray[np.bool_]]:
+    """Sphere fit with outlier rejection, as metrology software fits a probed sphere.
 
-    NaN, NaN when fewer than 100 such points exist.  Wrong points are kept: a scanner that
-    returns them is judged with them.
+    Fits all points (`fit_sphere`), then repeatedly refits the points whose distance to the
+    sphere lies within `cut` robust standard deviations (1.4826 x the median absolute
+    deviation) of the median distance.
+
+    Returns
+    -------
+    centre : (3,) float64, radius : float, rms : float, inliers : (N,) bool
+        Centre and radius (mm), RMS distance of the inliers to the sphere (mm), and which
+        points were kept.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    keep = np.ones(len(p), bool)
+    for _ in range(rounds):
+        centre, radius, rms = fit_sphere(p[keep])
+        distance = np.linalg.norm(p - centre, axis=1) - radius
+        middle = np.median(distance[keep])
+        sigma = 1.4826 * np.median(np.abs(distance[keep] - middle))
+        inside = np.abs(distance - middle) <= cut * max(sigma, 1e-9)
+        if np.array_equal(inside, keep) or inside.sum() < 4:
+            break
+        keep = inside
+    return centre, radius, rms, keep
+
+
+def sphere_fit(result: ScanResult, truth: GroundTruth, centre: ArrayLike, radius: float) -> tuple[float, float]:
+    """Radius (mm) of the sphere fitted (`robust_sphere`) to the scan's valid points whose true
+    point lies on the sphere of `centre` and `radius` (mm), and the fraction of those points the
+    fit rejected as outliers.
+
+    NaN, NaN when fewer than 100 such points exist.
     """
     true_distance = np.linalg.norm(truth.points - np.asarray(centre, dtype=np.float32), axis=-1)
     on_sphere = result.valid & truth.surface & (np.abs(true_distance - radius) < 1.0)
     if on_sphere.sum() < 100:
         return float("nan"), float("nan")
-    _, fitted, rms = fit_sphere(result.points[on_sphere])
-    return fitted, rms
+    _, fitted, _, inliers = robust_sphere(result.points[on_sphere])
+    return fitted, float(1 - inliers.mean())
+
+
+def carrier_transfer(spec: PatternSpec, conditions: Conditions, truth: GroundTruth) -> NDArray[np.float64]:
+    """The virtual rig's true optical transfer of each carrier, relative to the largest (1).
+
+    Closed form of `sliscan.simulate.render`'s linear chain at the median magnification of
+    the lit pixels: the projector's Gaussian blur, its bilinear sampling of projector pixels
+    (``sinc**2``), the camera pixel's box aperture (the mean of the sub-pixel samples) and the
+    camera's Gaussian blur.  Exact for a fronto-parallel plane up to the spread of the
+    magnification over the frame.
+
+    Parameters
+    ----------
+    spec : PatternSpec
+        The projected pattern (its `all_carriers`, cycles per projector width).
+    conditions : Conditions
+        The capture's blur and supersampling.
+    truth : GroundTruth
+        Its ground truth (for the projector pixels per camera pixel along the carriers).
+
+    Returns
+    -------
+    (C,) float64 array
+        Parallel to ``spec.all_carriers``.
+    """
+    axis = 0 if spec.orientation == "rows" else 1
+    step = np.diff(truth.proj[..., axis], axis=1 - axis)
+    lit = truth.lit[:, 1:] & truth.lit[:, :-1] if axis == 0 else truth.lit[1:] & truth.lit[:-1]
+    scale = float(np.median(np.abs(step[lit & np.isfinite(step)])))
+    fp = np.asarray(spec.all_carriers, dtype=np.float64) / spec.orthogonal_lines  # cycles per projector px
+    fc = fp * scale  # cycles per camera px
+    offsets = (np.arange(conditions.supersample) + 0.5) / conditions.supersample - 0.5
+    transfer = (np.exp(-2 * np.pi**2 * conditions.projector_blur_px**2 * fp**2) * np.sinc(fp) ** 2
+                * np.mean(np.cos(2 * np.pi * np.outer(fc, offsets)), axis=1)
+                * np.exp(-2 * np.pi**2 * conditions.camera_blur_px**2 * fc**2))
+    return transfer / transfer.max()

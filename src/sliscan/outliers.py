@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sliscan._validate import InputError
+from sliscan.types import PatternSpec
 
 #: int16 code of "no value" in the quantised map (the speckle filter's newVal).
 _EMPTY = -1
@@ -30,6 +31,26 @@ def default_min_region(shape: tuple[int, int]) -> int:
     1296x972 (0.1 % of the frame is 1260 pixels); real objects are far larger.
     """
     return max(25, int(round(2e-4 * shape[0] * shape[1])))
+
+
+def default_max_jump(spec: PatternSpec, direction: str) -> float:
+    """Largest step (projector pixels) between neighbouring pixels of one surface, per pattern.
+
+    * composite kinds: 1.5 stripes (neighbouring stripes are one stripe apart; a wrong bit
+      jumps by two stripes or more);
+    * ``pmp``: half the finest fringe period (a wrong fringe order jumps by a whole period);
+    * ``graycode`` with phase: one code (half the fringe period, as for PMP);
+    * plain ``graycode``: 8 codes (a wrong fine bit moves a point by a few lines, harmless; a
+      wrong coarse bit by many).
+
+    >>> default_max_jump(PatternSpec(kind="pmp", steps=4, frequencies=(1, 8, 64), b_p=0.5), "rows")
+    6.0
+    """
+    if spec.kind == "pmp":
+        return spec.lines(direction) / max(spec.frequencies) / 2
+    if spec.kind == "graycode":
+        return float(spec.code_width * (1 if spec.steps else 8))
+    return 1.5 * spec.phase_lines / spec.stripes
 
 
 def remove_speckles(proj_map: ArrayLike, valid: ArrayLike, *, lines: int, max_jump: float,

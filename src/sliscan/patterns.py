@@ -63,10 +63,19 @@ def code_bits(codes: ArrayLike, bits: int) -> NDArray[np.uint8]:
 
 
 def bits_to_code(planes: ArrayLike) -> NDArray[np.int64]:
-    """Integer code from bit planes ``(K, ...)``, plane 0 the most significant."""
-    planes = np.asarray(planes).astype(np.int64)
-    weights = (1 << np.arange(planes.shape[0] - 1, -1, -1, dtype=np.int64)).reshape((-1,) + (1,) * (planes.ndim - 1))
-    return np.sum(planes * weights, axis=0)
+    """Integer code from 0/1 bit planes ``(K, ...)``, plane 0 the most significant.
+
+    One shift-and-or per plane (Horner), so no ``(K, ...)`` int64 temporary.
+
+    >>> bits_to_code([[1, 0], [0, 1], [1, 1]]).tolist()
+    [5, 3]
+    """
+    planes = np.asarray(planes)
+    code = np.zeros(planes.shape[1:], dtype=np.int64)
+    for plane in planes:
+        code <<= 1
+        code |= plane.astype(np.int64)
+    return code
 
 
 def stripe_codes(spec: PatternSpec) -> NDArray[np.int64]:
@@ -160,15 +169,39 @@ def linear_pattern(spec: PatternSpec) -> NDArray[np.float64]:
     return image if spec.orientation == "rows" else image.T
 
 
+def precorrect(linear: ArrayLike, spec: PatternSpec) -> NDArray[np.float64]:
+    """Projector drive that gives `linear` light: the inverse of the spec's measured
+    `response` (evenly spaced drive levels), else ``linear ** (1 / gamma)``.
+
+    Parameters
+    ----------
+    linear : array
+        Wanted linear light in [0, 1] (clipped), any shape.
+
+    Returns
+    -------
+    float64 array of the same shape
+        Drive in [0, 1], before quantisation.
+
+    >>> spec = PatternSpec(response=(0.0, 0.25, 1.0))   # drive 0.5 gives a quarter of the light
+    >>> precorrect([0.0, 0.25, 0.625, 1.0], spec).tolist()
+    [0.0, 0.5, 0.75, 1.0]
+    """
+    light = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    if spec.response is None:
+        return light ** (1.0 / spec.gamma)
+    return np.interp(light, spec.response, np.linspace(0.0, 1.0, len(spec.response)))
+
+
 def render_pattern(spec: PatternSpec) -> NDArray[np.float32]:
-    """The image to project: eq. 3.1, gamma pre-corrected, quantised to 8 bits.
+    """The image to project: eq. 3.1, pre-corrected (`precorrect`), quantised to 8 bits.
 
     Returns
     -------
     (H_p, W_p) float32 array
         Values on the 1/255 grid in [0, 1].
     """
-    drive = np.clip(linear_pattern(spec), 0.0, 1.0) ** (1.0 / spec.gamma)
+    drive = precorrect(linear_pattern(spec), spec)
     return (to_uint8(drive).astype(np.float32) / np.float32(255)).astype(np.float32)
 
 

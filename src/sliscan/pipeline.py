@@ -1,7 +1,9 @@
 """One frame to a point cloud: demodulate -> decode -> reconstruct (thesis section 6.1).
 
 `Scanner` holds what does not change from frame to frame (the pattern, the calibration, the
-carriers once found) so a stream of frames from one rig pays for it once.
+carriers once found) so a stream of frames from one rig pays for it once.  A multi-frame
+pattern (``pmp``, ``graycode``) goes the same way from a whole capture sequence: decode
+(`sliscan.sequences`) -> the same triangulation and filters.
 """
 
 from __future__ import annotations
@@ -16,8 +18,10 @@ from numpy.typing import ArrayLike, NDArray
 from sliscan._validate import InputError, check_image
 from sliscan.decode import decode
 from sliscan.demodulate import Carriers, Demodulated, demodulate
-from sliscan.reconstruct import triangulate
-from sliscan.types import Calibration, PatternSpec, ScanResult
+from sliscan.outliers import default_max_jump, remove_speckles
+from sliscan.reconstruct import Triangulator
+from sliscan.sequences import decode_frames
+from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
 
 
 def texture_from_dc(dc: NDArray[np.floating]) -> NDArray[np.float32]:
@@ -26,7 +30,7 @@ def texture_from_dc(dc: NDArray[np.floating]) -> NDArray[np.float32]:
     return np.clip(dc / max(top, 1e-6), 0, 1).astype(np.float32)
 
 
-def inside_projector(points: NDArray[np.floating], calibration: Calibration, spec: PatternSpec) -> NDArray[np.bool_]:
+def inside_projector(points: NDArray[np.floating], calibration: Calibration, direction: str) -> NDArray[np.bool_]:
     """Which points the projector can light: finite, in front of camera and projector, and
     projecting inside the projector's image along the direction the stripes do not code.
 
@@ -48,7 +52,7 @@ def inside_projector(points: NDArray[np.floating], calibration: Calibration, spe
         ok &= sign * (xyz @ m[2, :3] + m[2, 3]) > 0  # depth > 0
     xp = calibration.projector.project(xyz)
     w, h = calibration.projector.size
-    across, lines = (xp[..., 0], w) if spec.orientation == "rows" else (xp[..., 1], h)
+    across, lines = (xp[..., 0], w) if direction == "rows" else (xp[..., 1], h)
     margin = 0.02 * lines
     return ok & (across > -0.5 - margin) & (across < lines - 0.5 + margin)
 
@@ -71,25 +75,48 @@ def triangulation_angle(points: NDArray[np.floating], calibration: Calibration) 
     return np.degrees(np.arccos(np.clip(cos, -1, 1)))
 
 
+def baseline_direction(calibration: Calibration) -> str:
+    """The projector coordinate that triangulates best on this rig: ``"rows"`` when the camera
+    lies above or below the projector, ``"columns"`` when beside it.
+
+    Decided by the epipole (the camera centre seen by the projector): the epipolar lines run
+    from it, and the coded lines should cross them, so rows are coded when the epipole lies
+    farther from the image centre along the projector's y axis than along its x axis.
+    """
+    epipole = calibration.projector.matrix @ np.append(device_centre(calibration.camera.matrix), 1.0)
+    w, h = calibration.projector.size
+    offset = epipole[:2] - epipole[2] * np.array([(w - 1) / 2, (h - 1) / 2])
+    return "rows" if abs(offset[1]) >= abs(offset[0]) else "columns"
+
+
 @dataclass
 class Scanner:
-    """A reusable single-shot scanner for one pattern and one calibrated rig.
+    """A reusable scanner for one pattern and one calibrated rig.
 
     Parameters
     ----------
     spec : PatternSpec
-        The projected composite pattern.
+        The projected pattern: a composite kind (one frame per scan) or a multi-frame kind
+        (``pmp``, ``graycode``: a capture sequence per scan).  For orientation ``"both"`` the
+        scan triangulates the direction of the rig's `baseline_direction` (rows on the thesis's
+        rig, columns with the projector beside the camera); `sliscan.sequences.decode_frames`
+        gives both projector coordinates.
     calibration : Calibration
         Camera and projector matrices; the capture must have the camera's size.
     method : {"window", "bandpass"}
         Demodulator (see `sliscan.demodulate`).
     decode_options : dict
-        Keyword arguments for `sliscan.decode.decode` (thresholds).
+        Keyword arguments for `sliscan.decode.decode` (thresholds), or for multi-frame kinds
+        `sliscan.pmp.decode_pmp` / `sliscan.graycode.decode_graycode`.
     reuse_carriers : bool
         Detect the carriers in the first frame and reuse them for later frames.
     min_angle_deg : float
         Points whose camera and projector rays meet at less than this angle are dropped
         (`triangulation_angle`).
+    remove_speckles : bool
+        Drop small regions of the projector map that jump away from their neighbours (wrong
+        codes: `sliscan.outliers.remove_speckles`, with `default_max_jump` and
+        `default_min_region`).  On by default.
 
     Examples
     --------
@@ -109,7 +136,9 @@ class Scanner:
     decode_options: dict[str, Any] = field(default_factory=dict)
     reuse_carriers: bool = False
     min_angle_deg: float = 2.0
+    remove_speckles: bool = True
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
+    _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.method not in ("window", "bandpass"):
@@ -129,35 +158,86 @@ class Scanner:
         return demod, found
 
     def scan(self, image: ArrayLike) -> ScanResult:
-        """Point cloud of one camera frame of the composite pattern.
+        """Point cloud of one camera frame of the composite pattern, or of one capture sequence
+        of a multi-frame pattern.
 
         Parameters
         ----------
-        image : (H, W) array
-            uint8, uint16 or float in [0, 1], of the calibrated camera's size; not modified.
+        image : (H, W) array, or for ``pmp`` / ``graycode`` ``spec.frame_count`` of them
+            uint8, uint16 or float in [0, 1], of the calibrated camera's size, frames in the
+            spec's order (a sequence or a ``(K, H, W)`` array); not modified.
 
         Returns
         -------
         ScanResult
+            For multi-frame kinds `stripe` holds the fringe order (PMP) or the Gray code index,
+            `confidence` the fringe visibility or the Gray code contrast, `texture` the DC or
+            the white frame.
+
+        Raises
+        ------
+        InputError
+            If a frame is not of the camera's size, or a sequence has the wrong number of frames.
         """
+        if self.spec.kind in MULTI_FRAME_KINDS:
+            return self._scan_sequence(image)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         demod, _ = self.demodulate(image)
         t1 = time.perf_counter()
         decoded = decode(demod, self.spec, **self.decode_options)
         t2 = time.perf_counter()
-        points = triangulate(decoded.proj_map, self.calibration, orientation=self.spec.orientation,
-                             valid=decoded.valid)
-        valid = decoded.valid & inside_projector(points, self.calibration, self.spec)
-        with np.errstate(invalid="ignore"):
-            valid &= triangulation_angle(points, self.calibration) >= self.min_angle_deg
-        points[~valid] = np.nan
+        points = self.triangulator(self.spec.orientation)(decoded.proj_map, decoded.valid)
+        valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation)
         t3 = time.perf_counter()
         timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
         return ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc),
                           proj_map=np.where(valid, decoded.proj_map, np.nan).astype(np.float32),
                           stripe=np.where(valid, decoded.stripe, -1).astype(np.int16),
                           confidence=decoded.confidence, timings=timings)
+
+    def triangulator(self, orientation: str) -> Triangulator:
+        """The rig's `Triangulator` for one orientation, built on first use and kept."""
+        if orientation not in self._triangulators:
+            self._triangulators[orientation] = Triangulator(self.calibration, orientation)
+        return self._triangulators[orientation]
+
+    def _measurable(self, points: NDArray[np.float32], proj_map: NDArray[np.float32], valid: NDArray[np.bool_],
+                    direction: str) -> NDArray[np.bool_]:
+        """`valid` less the points the projector cannot light (`inside_projector`), seen at
+        under `min_angle_deg` (`triangulation_angle`) or, with `remove_speckles`, in small
+        regions that jump away from their neighbours; sets the dropped points to NaN.
+
+        `proj_map` holds the projector coordinate along `direction` ("rows" or "columns").
+        Only the valid pixels' points are tested."""
+        index = np.flatnonzero(valid)
+        candidates = points.reshape(-1, 3)[index]
+        with np.errstate(invalid="ignore"):
+            keep = (inside_projector(candidates, self.calibration, direction)
+                    & (triangulation_angle(candidates, self.calibration) >= self.min_angle_deg))
+        valid = np.zeros(valid.shape, dtype=bool)
+        valid.ravel()[index[keep]] = True
+        if self.remove_speckles:
+            valid = remove_speckles(proj_map, valid, lines=self.spec.lines(direction),
+                                    max_jump=default_max_jump(self.spec, direction))
+        points[~valid] = np.nan
+        return valid
+
+    def _scan_sequence(self, frames: ArrayLike) -> ScanResult:
+        """`scan` of a multi-frame capture: decode every coded direction, triangulate one."""
+        t0 = time.perf_counter()
+        maps = decode_frames(frames, self.spec, shape=self.calibration.camera.shape, **self.decode_options)
+        direction = baseline_direction(self.calibration) if self.spec.orientation == "both" else self.spec.orientation
+        decoded = maps[direction]
+        t1 = time.perf_counter()
+        points = self.triangulator(direction)(decoded.coord, decoded.valid)
+        valid = self._measurable(points, decoded.coord, decoded.valid, direction)
+        t2 = time.perf_counter()
+        return ScanResult(points=points, valid=valid, texture=texture_from_dc(decoded.brightness),
+                          proj_map=np.where(valid, decoded.coord, np.nan).astype(np.float32),
+                          stripe=np.where(valid, decoded.index, -1).astype(np.int16),
+                          confidence=decoded.confidence,
+                          timings={"decode": t1 - t0, "triangulate": t2 - t1, "total": t2 - t0})
 
 
 def scan(image: ArrayLike, spec: PatternSpec, calibration: Calibration, **options: Any) -> ScanResult:

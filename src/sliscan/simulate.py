@@ -41,7 +41,7 @@ Graphics Tools 2(1), 1997. :doi:`10.1080/10867651.1997.10487468`
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Protocol, cast
 
@@ -49,31 +49,39 @@ import numpy as np
 import scipy.linalg
 import scipy.ndimage
 import scipy.special
+import scipy.spatial
 from numpy.typing import ArrayLike, NDArray
 
 from sliscan._validate import InputError, check_finite_matrix, check_image
+from sliscan.targets import CircleTarget
 from sliscan.types import Calibration, Device
 
 __all__ = [
+    "BoardAlbedo",
     "Box",
     "Capture",
     "CheckerAlbedo",
     "Conditions",
+    "DiscAlbedo",
     "GroundTruth",
     "Mat5Surface",
     "Pinhole",
     "Plane",
     "Rig",
+    "SequenceCapture",
     "SmoothAlbedo",
     "Sphere",
     "Surface",
     "UniformAlbedo",
     "Union",
+    "board_scene",
     "camera_view",
+    "circle_target_scene",
     "plane_scene",
     "projector_rows",
     "projector_view",
     "render",
+    "render_sequence",
     "sphere_scene",
     "steps_scene",
     "tilted_plane_scene",
@@ -894,6 +902,73 @@ def steps_scene(
     return Union(*boxes, Plane.at_z(wall))
 
 
+def circle_target_scene(
+    *, distance_mm: float = 800.0, opening_deg: float = 90.0, rows: int = 3, columns: int = 3,
+    spacing_mm: float = 60.0, radius_mm: float = 12.0
+) -> tuple[Surface, DiscAlbedo, CircleTarget]:
+    """The thesis's 3-D calibration target (fig. 4.1): dark circles on two planes at an angle.
+
+    Two planes meet at a vertical fold through ``(0, 0, distance_mm)`` and open toward the
+    camera by `opening_deg` (an open book, spine away).  Each face carries `rows` x `columns`
+    circles of `radius_mm` in a grid `spacing_mm` apart, the first column `spacing_mm` from the
+    fold; on the right face every second row is shifted half a spacing away from the fold, so
+    its columns are not straight and no projective map takes the target onto itself (its
+    circles can be told apart).  Default: 18 circles.
+
+    Returns
+    -------
+    scene : Surface
+        The two (infinite) faces.
+    albedo : DiscAlbedo
+        Circles at albedo 0.1 on a 0.9 face.
+    target : CircleTarget
+        Centres, normals and radius: what a user's target file holds.
+    """
+    if not (0 < opening_deg < 180 and rows >= 1 and columns >= 1 and 0 < 2 * radius_mm < spacing_mm):
+        raise InputError("circle_target_scene needs 0 < opening_deg < 180, rows and columns >= 1 and "
+                         "0 < 2 radius_mm < spacing_mm")
+    half = math.radians(opening_deg) / 2
+    fold = np.array([0.0, 0.0, distance_mm])
+    up = np.array([0.0, 1.0, 0.0])
+    faces, centres, normals = [], [], []
+    for side in (-1.0, 1.0):
+        along = np.array([side * math.sin(half), 0.0, -math.cos(half)])
+        normal = np.cross(along, up)
+        faces.append(Plane(tuple(fold), tuple(normal)))
+        r, c = np.mgrid[0:rows, 0:columns]
+        y = spacing_mm * (r.ravel() - (rows - 1) / 2)
+        s = spacing_mm * (c.ravel() + 1 + (side > 0) * (r.ravel() % 2) / 2)
+        centres.append(fold + s[:, None] * along + y[:, None] * up)
+        normals.append(np.broadcast_to(normal / np.linalg.norm(normal), (rows * columns, 3)))
+    target = CircleTarget(np.vstack(centres), np.vstack(normals), radius_mm)
+    return Union(*faces), DiscAlbedo(target.centres, radius_mm), target
+
+
+def board_scene(
+    *, tilt_deg: tuple[float, float] = (0.0, 0.0), distance_mm: float = 800.0,
+    inner_corners: tuple[int, int] = (9, 7), square_mm: float = 30.0
+) -> tuple[Plane, BoardAlbedo]:
+    """A flat chessboard centred on the camera axis at `distance_mm`, turned by `tilt_deg`
+    (degrees about the x axis, then about the y axis).
+
+    Returns
+    -------
+    scene : Plane
+    albedo : BoardAlbedo
+        The board printed on it (its `corners` are the inner corners in mm).
+    """
+    ax, ay = (math.radians(a) for a in tilt_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    rotation = ry @ rx
+    x_axis, y_axis = rotation[:, 0], rotation[:, 1]
+    cols, rows = inner_corners
+    centre = np.array([0.0, 0.0, distance_mm])
+    origin = centre - square_mm * ((cols - 1) / 2 * x_axis + (rows - 1) / 2 * y_axis)
+    albedo = BoardAlbedo(origin, x_axis, y_axis, inner_corners, square_mm)
+    return Plane(tuple(centre), tuple(rotation[:, 2])), albedo
+
+
 # --------------------------------------------------------------------------------------------
 # Albedo (texture) and conditions
 # --------------------------------------------------------------------------------------------
@@ -980,6 +1055,72 @@ class CheckerAlbedo:
         """Albedo ``(N,)`` float32 at world points ``xyz`` ``(N, 3)`` in mm."""
         parity = np.floor(_check_xyz(xyz) / self.square_mm + 0.5).astype(np.int64).sum(axis=1) % 2
         return np.where(parity == 0, self.high, self.low).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class DiscAlbedo:
+    """Dark discs of `radius_mm` around `centres` (mm) on a bright surface: printed circles.
+
+    A point is dark (`low`) within `radius_mm` of a centre; on a plane through the centre that
+    is a disc.  Everything else is `high`.
+    """
+
+    centres: NDArray[np.float64]
+    radius_mm: float
+    low: float = 0.1
+    high: float = 0.9
+
+    def __post_init__(self) -> None:
+        _check_unit_range(low=self.low, high=self.high)
+        object.__setattr__(self, "centres", _check_xyz(self.centres))
+        if not self.radius_mm > 0:
+            raise InputError(f"radius_mm must be positive, got {self.radius_mm}")
+
+    def __call__(self, xyz: ArrayLike) -> NDArray[np.float32]:
+        """Albedo ``(N,)`` float32 at world points ``xyz`` ``(N, 3)`` in mm."""
+        distance, _ = scipy.spatial.cKDTree(self.centres).query(_check_xyz(xyz))
+        return np.where(distance < self.radius_mm, self.low, self.high).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class BoardAlbedo:
+    """A printed chessboard on a plane: `inner_corners` (columns, rows) inner corners, squares
+    of `square_mm` (mm), a white (`high`) margin around it.
+
+    Inner corner ``(i, j)`` lies at ``origin + square_mm * (i * x_axis + j * y_axis)``; the
+    squares cover ``-1 <= i <= columns``, ``-1 <= j <= rows`` (in squares).
+    """
+
+    origin: NDArray[np.float64]
+    x_axis: NDArray[np.float64]
+    y_axis: NDArray[np.float64]
+    inner_corners: tuple[int, int] = (9, 7)
+    square_mm: float = 30.0
+    low: float = 0.1
+    high: float = 0.9
+
+    def __post_init__(self) -> None:
+        _check_unit_range(low=self.low, high=self.high)
+        for name in ("origin", "x_axis", "y_axis"):
+            object.__setattr__(self, name, np.array(_vec3(name, getattr(self, name))))
+        if not (self.square_mm > 0 and min(self.inner_corners) >= 1):
+            raise InputError("BoardAlbedo needs square_mm > 0 and at least 1x1 inner corners")
+
+    @property
+    def corners(self) -> NDArray[np.float64]:
+        """``(rows * columns, 3)`` inner corners in mm, along a board row first."""
+        cols, rows = self.inner_corners
+        j, i = np.mgrid[0:rows, 0:cols]
+        return self.origin + self.square_mm * (i.reshape(-1, 1) * self.x_axis + j.reshape(-1, 1) * self.y_axis)
+
+    def __call__(self, xyz: ArrayLike) -> NDArray[np.float32]:
+        """Albedo ``(N,)`` float32 at world points ``xyz`` ``(N, 3)`` in mm."""
+        rel = _check_xyz(xyz) - self.origin
+        u, v = np.floor(rel @ self.x_axis / self.square_mm), np.floor(rel @ self.y_axis / self.square_mm)
+        cols, rows = self.inner_corners
+        on_board = (u >= -1) & (u <= cols - 1) & (v >= -1) & (v <= rows - 1)
+        dark = on_board & ((u + v) % 2 == 0)
+        return np.where(dark, self.low, self.high).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -1119,6 +1260,24 @@ class Capture:
     truth: GroundTruth
 
 
+@dataclass(frozen=True, eq=False)
+class SequenceCapture:
+    """Simulated camera frames of a sequence of projected images on one scene, and their
+    common ground truth.
+
+    Attributes
+    ----------
+    images : (K, H, W) float32 array
+        One camera frame in [0, 1] per projected image, in the same order; each has its own
+        sensor noise.
+    truth : GroundTruth
+        The same for every frame (the scene and the rig do not move).
+    """
+
+    images: NDArray[np.float32]
+    truth: GroundTruth
+
+
 # --------------------------------------------------------------------------------------------
 # Rendering
 # --------------------------------------------------------------------------------------------
@@ -1223,10 +1382,10 @@ def _trace_rows(rig: Rig, scene: Surface, rows: slice, offsets: NDArray[np.float
     return _trace(rig, scene, xc, yc, pad)
 
 
-def _check_drive(projected: object, rig: Rig) -> NDArray[np.float32]:
-    drive = check_image("projected", projected, shape=rig.projector.shape)
+def _check_drive(projected: object, rig: Rig, name: str = "projected") -> NDArray[np.float32]:
+    drive = check_image(name, projected, shape=rig.projector.shape)
     if drive.min() < 0 or drive.max() > 1:
-        raise InputError(f"projected values must lie in [0, 1], got [{drive.min():g}, {drive.max():g}]")
+        raise InputError(f"{name} values must lie in [0, 1], got [{drive.min():g}, {drive.max():g}]")
     return drive
 
 
@@ -1283,11 +1442,74 @@ def render(
     cond = Conditions() if conditions is None else conditions
     drive = _check_drive(projected, rig)
     generator = np.random.default_rng(cond.seed if rng is None else rng)
-    light, pad = _projector_light(drive, cond)
+    signals, truth = _render_signals(rig, scene, [drive], cond)
+    return Capture(image=_sensor(signals[0], cond, generator), truth=truth)
+
+
+def render_sequence(
+    rig: Rig,
+    scene: Surface,
+    projected: Sequence[ArrayLike],
+    conditions: Conditions | None = None,
+    *,
+    rng: np.random.Generator | int | None = None,
+) -> SequenceCapture:
+    """Simulate the camera frames of a sequence of projected images (PMP, Gray code) on one scene.
+
+    The scene is traced once and shaded under each projected image, so the frames share the
+    geometry, the albedo and the ground truth exactly; each frame gets its own sensor noise, drawn
+    in frame order from one generator.  Frame ``k`` equals ``render(rig, scene, projected[k],
+    conditions).image`` up to the noise.
+
+    Parameters
+    ----------
+    rig, scene, conditions
+        As for `render`.
+    projected : sequence of (Hp, Wp) arrays, or a (K, Hp, Wp) array
+        Projector drive images in [0, 1] (uint8 / uint16 are scaled), in projection order.
+    rng : numpy Generator or int, optional
+        Source (or seed) of the sensor noise of all frames.  Default: ``conditions.seed``.
+
+    Returns
+    -------
+    SequenceCapture
+        ``images`` (K, H, W) float32 and the common `GroundTruth`.
+
+    Raises
+    ------
+    InputError
+        As `render`, naming the bad image (``projected[3]``), or if `projected` is empty.
+
+    Examples
+    --------
+    >>> rig = virtual_rig(camera_size=(65, 49), projector_size=(32, 24))
+    >>> seq = render_sequence(rig, plane_scene(), [np.full((24, 32), v) for v in (0.25, 0.5)],
+    ...                       Conditions.ideal())
+    >>> seq.images.shape, round(float(seq.images[1, 24, 32] / seq.images[0, 24, 32]), 4)
+    ((2, 49, 65), 2.0)
+    """
+    cond = Conditions() if conditions is None else conditions
+    drives = [_check_drive(p, rig, f"projected[{k}]") for k, p in enumerate(projected)]
+    if not drives:
+        raise InputError("projected must hold at least one image")
+    generator = np.random.default_rng(cond.seed if rng is None else rng)
+    signals, truth = _render_signals(rig, scene, drives, cond)
+    return SequenceCapture(images=np.stack([_sensor(signal, cond, generator) for signal in signals]), truth=truth)
+
+
+def _render_signals(
+    rig: Rig, scene: Surface, drives: Sequence[NDArray[np.float32]], cond: Conditions
+) -> tuple[list[NDArray[np.float32]], GroundTruth]:
+    """Camera signal before the sensor (one ``(H, W)`` float32 per drive image) and the truth.
+
+    Traces every chunk of camera rows once and shades it under each drive image.
+    """
+    lights = [_projector_light(drive, cond) for drive in drives]
+    pad = lights[0][1]
     offsets, centre = _subpixel_offsets(cond.supersample)
     n_sub = cond.supersample**2
     shape = rig.camera.shape
-    signal = np.empty(shape, dtype=np.float32)
+    signals = [np.empty(shape, dtype=np.float32) for _ in drives]
     points = np.empty((*shape, 3), dtype=np.float32)
     proj = np.empty((*shape, 2), dtype=np.float32)
     albedo = np.empty(shape, dtype=np.float32)
@@ -1296,10 +1518,12 @@ def render(
 
     for rows in _row_chunks(rig, len(offsets)):
         hits = _trace_rows(rig, scene, rows, offsets, pad)
-        value, alb = _shade(hits, light, pad, cond, rig.projector_distance_mm)
+        alb = _albedo(hits, cond)
         n_pix = len(hits.surface) // len(offsets)
         per_pixel = (n_pix, len(offsets))
-        signal[rows] = value.reshape(per_pixel)[:, :n_sub].mean(axis=1).reshape(-1, shape[1])
+        for signal, (light, _) in zip(signals, lights):
+            value = _shade(hits, alb, light, pad, cond, rig.projector_distance_mm)
+            signal[rows] = value.reshape(per_pixel)[:, :n_sub].mean(axis=1).reshape(-1, shape[1])
         sub_lit = (hits.reached & hits.inside).reshape(per_pixel)
         sub_surface = hits.surface.reshape(per_pixel)
         sub_points = hits.points.reshape(*per_pixel, 3)
@@ -1319,29 +1543,36 @@ def render(
         edge[rows] = (mixed | stepped).reshape(block)
 
     if cond.camera_blur_px > 0:
-        signal = scipy.ndimage.gaussian_filter(signal, cond.camera_blur_px, mode="nearest", truncate=4.0)
-    truth = GroundTruth(points=points, proj=proj, lit=lit, surface=surface, albedo=albedo, edge=edge)
-    return Capture(image=_sensor(signal, cond, generator), truth=truth)
+        signals = [scipy.ndimage.gaussian_filter(signal, cond.camera_blur_px, mode="nearest", truncate=4.0)
+                   for signal in signals]
+    return signals, GroundTruth(points=points, proj=proj, lit=lit, surface=surface, albedo=albedo, edge=edge)
 
 
-def _shade(
-    hits: _Hits, light: NDArray[np.float32], pad: int, conditions: Conditions, falloff_mm: float
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Camera signal (full scale = 1) and albedo of each ray sample, before the sensor.
-
-    `light` is the projector canvas of `_projector_light` with its padding `pad`; the
-    inverse-square falloff is 1 at `falloff_mm` from the projector centre.
-    """
+def _albedo(hits: _Hits, conditions: Conditions) -> NDArray[np.float32]:
+    """Albedo of each ray sample (0 where no surface), checked to lie in [0, 1]."""
     albedo = np.zeros(len(hits.surface), dtype=np.float32)
     albedo[hits.surface] = conditions.albedo(hits.points[hits.surface])
     if albedo.min(initial=0) < 0 or albedo.max(initial=0) > 1:
         raise InputError(f"albedo values must lie in [0, 1], got [{albedo.min():g}, {albedo.max():g}]")
+    return albedo
+
+
+def _shade(
+    hits: _Hits, albedo: NDArray[np.float32], light: NDArray[np.float32], pad: int, conditions: Conditions,
+    falloff_mm: float
+) -> NDArray[np.float32]:
+    """Camera signal (full scale = 1) of each ray sample, before the sensor.
+
+    `albedo` is `_albedo` of the samples; `light` is the projector canvas of
+    `_projector_light` with its padding `pad`; the inverse-square falloff is 1 at `falloff_mm`
+    from the projector centre.
+    """
     on = hits.reached
     irradiance = np.zeros(len(on), dtype=np.float32)
     irradiance[on] = _bilinear(light, hits.proj[on, 0] + pad, hits.proj[on, 1] + pad) * hits.cos[on]
     if conditions.inverse_square:
         irradiance[on] *= (falloff_mm / hits.dist[on]) ** 2
-    return conditions.exposure * albedo * (irradiance + np.float32(conditions.ambient)), albedo
+    return conditions.exposure * albedo * (irradiance + np.float32(conditions.ambient))
 
 
 def _sensor(signal: NDArray[np.float32], conditions: Conditions, rng: np.random.Generator) -> NDArray[np.float32]:

@@ -20,9 +20,19 @@ from numpy.typing import NDArray
 
 from sliscan._validate import InputError, atomic_write_text, check_finite_matrix
 
-#: The pattern kinds this version knows.
-PATTERN_KINDS = ("composite", "carrier_only", "modified_composite")
+#: The pattern kinds this version knows: single-frame composite kinds, then multi-frame ones.
+COMPOSITE_KINDS = ("composite", "carrier_only", "modified_composite")
+MULTI_FRAME_KINDS = ("pmp", "graycode")
+PATTERN_KINDS = COMPOSITE_KINDS + MULTI_FRAME_KINDS
+#: Projector coordinates a pattern can code (and triangulation can use).
 ORIENTATIONS = ("rows", "columns")
+#: Multi-frame kinds may also code both, columns first (OpenCV's order).
+SEQUENCE_ORIENTATIONS = ORIENTATIONS + ("both",)
+#: Fields only the composite kinds use, and fields only the multi-frame kinds use: each kind's
+#: JSON leaves out the other group (they keep their defaults).
+_COMPOSITE_FIELDS = ("bits", "carriers", "weights", "pilot", "pilot_weight", "skip_zero_code", "modified_frequency",
+                     "modified_amplitude", "image")
+_MULTI_FRAME_FIELDS = ("steps", "frequencies", "code_width", "frames")
 
 
 @dataclass(frozen=True)
@@ -34,7 +44,9 @@ class PatternSpec:
     kind : str
         ``"composite"`` (thesis eq. 3.1), ``"carrier_only"`` (fig. 3.9: every carrier on
         everywhere), or ``"modified_composite"`` (section 6.2: composite plus a sine along the
-        phase direction).
+        phase direction); multi-frame: ``"pmp"`` (N-step phase shifting at one or more
+        frequencies, eq. 2.1; `sliscan.pmp`) or ``"graycode"`` (pattern/inverse pairs in OpenCV's
+        order, optionally with phase shifting; `sliscan.graycode`).
     projector_size : (W, H) tuple of int
         Projector resolution in pixels.
     bits : int
@@ -51,9 +63,15 @@ class PatternSpec:
         in [0, 1] units of full projector drive.
     gamma : float
         Gamma pre-correction applied to the pattern (``I ** (1 / gamma)``); 1 means none.
+    response : tuple of float or None
+        Measured projector response (`sliscan.photometry`): linear light, normalised to 0 at
+        drive 0 and 1 at full drive, at evenly spaced drive levels from 0 to 1 (strictly
+        increasing).  When given, the pattern is pre-corrected with its inverse instead of
+        `gamma` (which must then be 1).  None: no measured response.
     orientation : str
         ``"rows"`` (default, DESIGN.md): stripes are horizontal bands that code the projector
         row `yp`, carriers run along `x`.  ``"columns"``: stripes code `xp`, carriers along `y`.
+        ``"both"`` (multi-frame kinds only): the columns' frames, then the rows'.
     pilot : float or None
         Frequency (cycles per projector width) of a reference carrier that is on everywhere
         the projector lights; it tells a lit all-zero code from shadow and normalises every bit
@@ -70,6 +88,22 @@ class PatternSpec:
         Amplitude of that sine, in the same units as `b_p`.
     image : str or None
         File name of the pattern image, relative to the JSON file.
+    steps : int
+        Phase steps N per frequency (``pmp``: N >= 3); for ``graycode`` the steps of the
+        phase-shifted fringes that refine each Gray code (0: none, else N >= 3).
+    frequencies : tuple of float
+        ``pmp`` fringe frequencies in cycles per projector extent along the coded direction
+        (H for rows, W for columns), increasing.  Hierarchical unwrapping: the first is 1 (one
+        fringe over the projector: unambiguous), each next one unwrapped by the previous, e.g.
+        ``(1, 8, 64)``; ``(1, f)`` is the dual-frequency case.  Heterodyne start: if the first
+        is not 1 the first two must differ by exactly 1 (their beat is the unit frequency),
+        e.g. ``(15, 16)``.
+    code_width : int
+        ``graycode``: projector lines per Gray code, a power of two (1: one code per line,
+        OpenCV's sequence); with `steps` the phase-shifted fringes have a period of two codes.
+    frames : tuple of str
+        Multi-frame kinds: the image files, relative to the JSON file, in projection order
+        (empty: not written to files); `frame_count` of them.
     """
 
     kind: str = "composite"
@@ -80,6 +114,7 @@ class PatternSpec:
     a_p: float = 0.5
     b_p: float = 0.125
     gamma: float = 1.0
+    response: tuple[float, ...] | None = None
     orientation: str = "rows"
     pilot: float | None = None
     pilot_weight: float = 1.0
@@ -87,11 +122,21 @@ class PatternSpec:
     modified_frequency: float = 15.0
     modified_amplitude: float = 0.0
     image: str | None = None
+    steps: int = 0
+    frequencies: tuple[float, ...] = ()
+    code_width: int = 1
+    frames: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "projector_size", tuple(int(v) for v in self.projector_size))
         object.__setattr__(self, "carriers", tuple(float(v) for v in self.carriers))
         object.__setattr__(self, "weights", tuple(float(v) for v in self.weights))
+        object.__setattr__(self, "frequencies", tuple(float(v) for v in self.frequencies))
+        if isinstance(self.frames, str):
+            raise InputError("invalid pattern spec: frames must be a list of file names")
+        object.__setattr__(self, "frames", tuple(str(v) for v in self.frames))
+        if self.response is not None:
+            object.__setattr__(self, "response", tuple(float(v) for v in self.response))
         problems = self._problems()
         if problems:
             raise InputError(f"invalid pattern spec: {problems[0]}")
@@ -100,9 +145,26 @@ class PatternSpec:
         out = []
         w, h = self.projector_size
         if self.kind not in PATTERN_KINDS:
-            out.append(f"kind must be one of {PATTERN_KINDS}, got {self.kind!r}")
+            return [f"kind must be one of {PATTERN_KINDS}, got {self.kind!r}"]
         if w < 8 or h < 8:
-            out.append(f"projector_size must be at least 8x8, got {w}x{h}")
+            return [f"projector_size must be at least 8x8, got {w}x{h}"]
+        out += self._sequence_problems() if self.kind in MULTI_FRAME_KINDS else self._composite_problems()
+        if not (self.gamma > 0 and math.isfinite(self.gamma)):
+            out.append(f"gamma must be positive, got {self.gamma}")
+        if self.response is not None:
+            r = np.asarray(self.response)
+            if r.size < 2 or not np.all(np.isfinite(r)) or r[0] != 0 or r[-1] != 1 or np.any(np.diff(r) <= 0):
+                out.append("response must rise strictly from 0 to 1 over at least 2 evenly spaced drive levels")
+            elif self.gamma != 1:
+                out.append(f"give gamma or response, not both (gamma {self.gamma:g} with a measured response)")
+        return out
+
+    def _composite_problems(self) -> list[str]:
+        """What is wrong with the fields of a single-frame composite kind."""
+        out = []
+        w, h = self.projector_size
+        if self.frames:
+            out.append(f"frames are for the multi-frame kinds {MULTI_FRAME_KINDS}, not {self.kind!r}")
         if not 1 <= self.bits <= 16:
             out.append(f"bits must be in 1..16, got {self.bits}")
         if len(self.carriers) != self.bits:
@@ -117,11 +179,78 @@ class PatternSpec:
             out.append(f"carriers must be distinct, got {list(allc)}")
         if self.orientation not in ORIENTATIONS:
             out.append(f"orientation must be one of {ORIENTATIONS}, got {self.orientation!r}")
-        if not (self.gamma > 0 and math.isfinite(self.gamma)):
-            out.append(f"gamma must be positive, got {self.gamma}")
         if self.stripes > (h if self.orientation == "rows" else w):
             out.append(f"{self.stripes} stripes do not fit in {h if self.orientation == 'rows' else w} projector lines")
         return out
+
+    def _sequence_problems(self) -> list[str]:
+        """What is wrong with the fields of a multi-frame kind (``pmp``, ``graycode``)."""
+        if self.orientation not in SEQUENCE_ORIENTATIONS:
+            return [f"orientation must be one of {SEQUENCE_ORIENTATIONS}, got {self.orientation!r}"]
+        for name in ("steps", "code_width"):
+            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int):
+                return [f"{name} must be an integer, got {getattr(self, name)!r}"]
+        shortest = min(self.lines(d) for d in self.directions)
+        out = self._pmp_problems(shortest) if self.kind == "pmp" else self._graycode_problems(shortest)
+        if (self.kind == "pmp" or self.steps) and not (0 < self.b_p and 0 <= self.a_p - self.b_p
+                                                       and self.a_p + self.b_p <= 1):
+            out.append(f"fringes a_p +/- b_p must lie in [0, 1] with b_p > 0, got a_p {self.a_p:g}, b_p {self.b_p:g}")
+        if self.frames and len(self.frames) != self.frame_count:
+            out.append(f"frames must list {self.frame_count} files, got {len(self.frames)}")
+        return out
+
+    def _pmp_problems(self, lines: int) -> list[str]:
+        f = self.frequencies
+        if self.steps < 3:
+            return [f"pmp needs steps >= 3, got {self.steps}"]
+        if not f or not all(math.isfinite(v) for v in f) or any(b <= a for a, b in zip(f, f[1:])):
+            return [f"pmp frequencies must be finite and increasing, got {list(f)}"]
+        if not (0 < f[0] and f[-1] < lines / 2):
+            return [f"pmp frequencies must lie in (0, {lines / 2:g}) cycles per projector extent, got {list(f)}"]
+        if f[0] != 1 and not (len(f) >= 2 and f[1] - f[0] == 1):
+            return [f"pmp frequencies must start at 1 (or with two differing by 1, a heterodyne pair), got {list(f)}"]
+        return []
+
+    def _graycode_problems(self, lines: int) -> list[str]:
+        w = self.code_width
+        if not (w >= 1 and w & (w - 1) == 0 and 2 * w <= lines):
+            return [f"code_width must be a power of two up to {lines // 2} (half the projector), got {w}"]
+        if self.steps and (self.steps < 3 or w < 2):
+            return [f"graycode phase steps need steps >= 3 (0: none) and code_width >= 2, got {self.steps} and {w}"]
+        return []
+
+    @property
+    def directions(self) -> tuple[str, ...]:
+        """Projector coordinates coded, in projection order: ``("columns", "rows")`` for ``"both"``."""
+        return ("columns", "rows") if self.orientation == "both" else (self.orientation,)
+
+    def lines(self, direction: str) -> int:
+        """Projector lines along a coded direction: W for ``"columns"``, H for ``"rows"``."""
+        w, h = self.projector_size
+        return w if direction == "columns" else h
+
+    def gray_bits(self, direction: str) -> int:
+        """``graycode``: Gray code bits that number the codes of `code_width` lines along `direction`.
+
+        >>> PatternSpec(kind="graycode", orientation="both").gray_bits("rows")   # 768 rows
+        10
+        """
+        return (math.ceil(self.lines(direction) / self.code_width) - 1).bit_length()
+
+    @property
+    def frame_count(self) -> int:
+        """Frames a capture of this pattern has: 1 for the composite kinds; ``steps`` per
+        frequency and direction for ``pmp``; a pattern/inverse pair per Gray code bit and
+        direction, white, black and ``steps`` per direction for ``graycode``.
+
+        >>> PatternSpec(kind="graycode", projector_size=(1024, 768), orientation="both").frame_count
+        42
+        """
+        if self.kind == "pmp":
+            return len(self.directions) * self.steps * len(self.frequencies)
+        if self.kind == "graycode":
+            return sum(2 * self.gray_bits(d) + self.steps for d in self.directions) + 2
+        return 1
 
     @property
     def all_carriers(self) -> tuple[float, ...]:
@@ -151,11 +280,9 @@ class PatternSpec:
         return w if self.orientation == "rows" else h
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["projector_size"] = list(self.projector_size)
-        d["carriers"] = list(self.carriers)
-        d["weights"] = list(self.weights)
-        return d
+        """The JSON object of this spec; fields the kind does not use are left out (defaults)."""
+        unused = _COMPOSITE_FIELDS if self.kind in MULTI_FRAME_KINDS else _MULTI_FRAME_FIELDS
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items() if k not in unused}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], *, source: str = "pattern spec") -> PatternSpec:
