@@ -131,7 +131,8 @@ def averaged(rows: list[dict]) -> dict:
     for key in ("completeness", "wrong_stripe", "outliers", "rms_mm", "median_mm", "snr_db"):
         values = [r[key] for r in rows if key in r]
         if values:
-            out[key] = float(np.nanmean(values))
+            finite = [v for v in values if np.isfinite(v)]
+            out[key] = float(np.mean(finite)) if finite else float("nan")
     return out
 
 

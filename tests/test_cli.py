@@ -186,6 +186,25 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
         mat5_files = [p.name for p in mat5.mat5_paths("sphere")]
         for file in ["pattern.png", "pattern.json", "capture.png", "sphere.ply", *mat5_files]:
             assert (out / name / file).is_file(), f"{name}/{file}"
+    ok("demo", "--camera", CAMERA_ARG, "--out", "demo", "--pattern", "best", cwd=tmp_path)  # again: replaces its files
+
+
+def test_existing_outputs_are_replaced_only_with_overwrite(plane: tuple[Path, str], tmp_path: Path) -> None:
+    source, _ = plane
+    for name in ("cp.json", "rig.json", "capture.png"):
+        shutil.copy(source / name, tmp_path / name)
+    (tmp_path / "old.ply").write_text("not replaced")
+    (tmp_path / "old.json").write_text("not replaced")
+    for args, name in ((scan_args("capture.png", "cp.json", "rig.json", "--ply", "old.ply"), "old.ply"),
+                       (("pattern", "composite", "--projector", PROJECTOR_ARG, "-o", "old.png"), "old.json")):
+        before = listing(tmp_path)
+        result = sliscan(*args, cwd=tmp_path)
+        assert result.returncode == 2 and result.stderr == f"error: {name} exists (use --overwrite)\n"
+        assert listing(tmp_path) == before
+        ok(*args, "--overwrite", cwd=tmp_path)
+    assert (tmp_path / "old.ply").read_bytes().startswith(b"ply")
+    result = sliscan(*scan_args("capture.png", "cp.json", "rig.json", "--npz", "rig.json"), "--overwrite", cwd=tmp_path)
+    assert result.returncode == 2 and "refusing to overwrite the input file" in result.stderr  # never an input
 
 
 @pytest.mark.parametrize("command", [[], ["pattern", "composite"], ["pattern", "carrier-only"], ["pattern", "modified"],

@@ -8,6 +8,7 @@ name first: ``scan.png: not an image (cannot decode)``.
 from __future__ import annotations
 
 import contextlib
+import numbers
 import os
 import tempfile
 from collections.abc import Iterator
@@ -19,6 +20,37 @@ from numpy.typing import NDArray
 
 class InputError(ValueError):
     """Bad input: a file, an array or a parameter the library cannot use (one-line message)."""
+
+
+#: Largest image or device size accepted (pixels per side, pixels in all): a bound that keeps a
+#: broken file's declared size from turning into a huge allocation.
+MAX_IMAGE_SIDE = 1 << 16
+MAX_IMAGE_PIXELS = 1 << 28
+
+
+def check_size(name: str, size: object, *, minimum: int = 1) -> tuple[int, int]:
+    """`size` as a ``(W, H)`` tuple of int: two whole numbers of at least `minimum`, at most
+    `MAX_IMAGE_SIDE` a side and `MAX_IMAGE_PIXELS` in all (what a broken file may declare)."""
+    try:
+        w, h = size  # type: ignore[misc]
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be (W, H), got {size!r}") from None
+    if not all(_is_whole(v) for v in (w, h)):
+        raise InputError(f"{name} must be two whole numbers (W, H), got {size!r}")
+    w, h = int(w), int(h)
+    if w < minimum or h < minimum:
+        raise InputError(f"{name} must be at least {minimum}x{minimum}, got {w}x{h}")
+    if max(w, h) > MAX_IMAGE_SIDE or w * h > MAX_IMAGE_PIXELS:
+        raise InputError(f"{name} {w}x{h} is too large (at most {MAX_IMAGE_SIDE} px a side and "
+                         f"{MAX_IMAGE_PIXELS} px in all)")
+    return w, h
+
+
+def _is_whole(value: object) -> bool:
+    """An integer (not a bool), or a float with an integral value."""
+    if isinstance(value, bool):
+        return False
+    return isinstance(value, numbers.Integral) or (isinstance(value, float) and value.is_integer())
 
 
 def check_finite_matrix(name: str, value: object, shape: tuple[int, ...]) -> NDArray[np.float64]:
@@ -78,7 +110,10 @@ def read_image(path: str | os.PathLike) -> NDArray[np.float32]:
     if not p.is_file():
         raise InputError(f"{p}: no such file")
     data = np.fromfile(p, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error:  # OpenCV refuses some broken headers (e.g. a huge declared size) by raising
+        img = None
     if img is None:
         raise InputError(f"{p}: not an image (cannot decode)")
     if img.ndim == 3:

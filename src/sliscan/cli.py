@@ -4,7 +4,8 @@ Commands: ``pattern`` (``composite``, ``carrier-only``, ``modified``, ``pmp``, `
 ``simulate``, ``scan``, ``calibrate`` (from a G file), ``calibrate-target`` and ``calibrate-board``
 (from captured calibration sequences) and ``demo``.  Every command
 
-* checks its output paths first: none may be one of its input files or another of its outputs;
+* checks its output paths first: none may be one of its input files or another of its outputs,
+  and none may exist unless ``--overwrite`` is given (``demo`` alone replaces its own files);
 * reads and checks every input before it computes anything, and writes only at the end, each
   file atomically (temporary file + rename), so bad input leaves nothing behind;
 * prints a one-line summary of what it wrote on stdout, and a progress bar on stderr (only on a
@@ -146,6 +147,9 @@ def _projector_option(**kwargs: Any) -> Callable[[Callable], Callable]:
     return click.option("--projector", type=SIZE, **kwargs)
 
 
+_overwrite_option = click.option("--overwrite", is_flag=True,
+                                 help="Replace output files that exist (else an existing output is an error).")
+
 _calibration_options = _options(
     click.option("--calibration", type=INPUT_FILE, help="Calibration JSON (DESIGN.md format)."),
     click.option("--camera-matrix", type=INPUT_FILE,
@@ -160,8 +164,9 @@ _calibration_options = _options(
 # --------------------------------------------------------------------------------------------
 
 
-def _check_outputs(outputs: Sequence[Path | None], inputs: Sequence[Path | None]) -> None:
-    """Refuse an output path that is an input file or that is given twice.
+def _check_outputs(outputs: Sequence[Path | None], inputs: Sequence[Path | None], *, overwrite: bool) -> None:
+    """Refuse an output path that is an input file, that is given twice, or (unless `overwrite`)
+    that exists.
 
     Raises
     ------
@@ -178,6 +183,8 @@ def _check_outputs(outputs: Sequence[Path | None], inputs: Sequence[Path | None]
             raise InputError(f"{out}: refusing to overwrite the input file {given[key]}")
         if key in seen:
             raise InputError(f"{out}: given for two outputs")
+        if not overwrite and os.path.lexists(out):
+            raise InputError(f"{out} exists (use --overwrite)")
         seen[key] = out
 
 
@@ -345,6 +352,7 @@ _pattern_options = _options(
                       "and weight the carriers against its measured roll-off."),
     click.option("-o", "--output", type=OUTPUT_FILE, required=True,
                  help="Pattern image (.png or .bmp); the JSON goes beside it."),
+    _overwrite_option,
 )
 
 def _weight_sum(spec: PatternSpec) -> float:
@@ -402,7 +410,9 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
         return measured.apply(spec)
 
 
-def _write_pattern(output: Path, spec: PatternSpec) -> None:
+def _write_pattern(output: Path, spec: PatternSpec, *, overwrite: bool, inputs: Sequence[Path | None] = ()) -> None:
+    """Write a pattern image and its JSON (refusing existing files unless `overwrite`); print what was written."""
+    _check_outputs([output, output.with_suffix(".json")], inputs, overwrite=overwrite)
     _, json_path = patterns.save_pattern(output, spec)
     click.echo(f"wrote {output} and {json_path}: {_describe(spec)}")
 
@@ -417,21 +427,21 @@ Examples:
 
 @pattern.command("composite", epilog=_PATTERN_EPILOG.format(cmd="composite"))
 @_pattern_options
-def pattern_composite(output: Path, **options: Any) -> None:
+def pattern_composite(output: Path, overwrite: bool, **options: Any) -> None:
     """The Gray code composite pattern (thesis eq. 3.1).
 
     With only --projector: the best single-shot pattern sliscan knows (the thesis's carriers
     with the most significant bit on the highest, no all-zero code).  --thesis, or --bits 4
     --carriers 32,64,96,128, gives the thesis's pattern.
     """
-    _write_pattern(output, _pattern_spec("composite", **options))
+    _write_pattern(output, _pattern_spec("composite", **options), overwrite=overwrite, inputs=[options["characterization"]])
 
 
 @pattern.command("carrier-only", epilog=_PATTERN_EPILOG.format(cmd="carrier-only"))
 @_pattern_options
-def pattern_carrier_only(output: Path, **options: Any) -> None:
+def pattern_carrier_only(output: Path, overwrite: bool, **options: Any) -> None:
     """Every carrier on everywhere (thesis fig. 3.9): for measuring the carriers' roll-off."""
-    _write_pattern(output, _pattern_spec("carrier_only", **options))
+    _write_pattern(output, _pattern_spec("carrier_only", **options), overwrite=overwrite, inputs=[options["characterization"]])
 
 
 @pattern.command("modified", epilog=_PATTERN_EPILOG.format(cmd="modified") + """
@@ -441,13 +451,15 @@ def pattern_carrier_only(output: Path, **options: Any) -> None:
               help="Sine along the phase direction, cycles per projector height (section 6.2).")
 @click.option("--modified-amplitude", type=POSITIVE,
               help="Amplitude of that sine [one carrier's; B_p shrinks to keep the pattern in [0, 1]].")
-def pattern_modified(output: Path, **options: Any) -> None:
+def pattern_modified(output: Path, overwrite: bool, **options: Any) -> None:
     """The modified composite pattern (thesis section 6.2): composite plus a sine along the phase direction."""
-    _write_pattern(output, _pattern_spec("modified_composite", **options))
+    _write_pattern(output, _pattern_spec("modified_composite", **options), overwrite=overwrite, inputs=[options["characterization"]])
 
 
-def _write_sequence(output: Path, spec: PatternSpec) -> None:
-    """Write a multi-frame pattern's images and JSON; print what was written."""
+def _write_sequence(output: Path, spec: PatternSpec, *, overwrite: bool) -> None:
+    """Write a multi-frame pattern's images and JSON (refusing existing files unless `overwrite`);
+    print what was written."""
+    _check_outputs([output, *sequences.frame_paths(output, spec)], [], overwrite=overwrite)
     paths, json_path = sequences.save_sequence(output, spec)
     w, h = spec.projector_size
     click.echo(f"wrote {json_path} and {len(paths)} frames {paths[0].name} .. {paths[-1].name}: {spec.kind} pattern "
@@ -463,6 +475,7 @@ _fringe_options = _options(
                  help="Gamma pre-correction of the projector (1: none)."),
     click.option("-o", "--output", type=OUTPUT_FILE, required=True,
                  help="PatternSpec JSON (NAME.json); the frames NAME_00.png, NAME_01.png, ... go beside it."),
+    _overwrite_option,
 )
 
 
@@ -481,13 +494,13 @@ Examples:
 @click.option("--orientation", type=click.Choice(SEQUENCE_ORIENTATIONS), default="rows", show_default=True,
               help="Projector coordinate the fringes code; both: the columns' frames, then the rows'.")
 @_fringe_options
-def pattern_pmp(output: Path, projector: tuple[int, int], **fields: Any) -> None:
+def pattern_pmp(output: Path, projector: tuple[int, int], overwrite: bool, **fields: Any) -> None:
     """Phase measuring profilometry (thesis section 2.6, eq. 2.1): N phase-shifted fringe images per frequency.
 
     Frames in projection order: per direction (columns first for both), per frequency, the
     steps n = 0 .. N-1.  `sliscan scan` takes the captures in that order.
     """
-    _write_sequence(output, PatternSpec(kind="pmp", projector_size=projector, **fields))
+    _write_sequence(output, PatternSpec(kind="pmp", projector_size=projector, **fields), overwrite=overwrite)
 
 
 @pattern.command("graycode", epilog="""\b
@@ -504,7 +517,8 @@ Examples:
               help="Projector lines per Gray code, a power of two [1; 8 with --phase-steps, whose fringe period "
                    "is two codes].")
 @_fringe_options
-def pattern_graycode(output: Path, projector: tuple[int, int], code_width: int | None, **fields: Any) -> None:
+def pattern_graycode(output: Path, projector: tuple[int, int], code_width: int | None, overwrite: bool,
+                     **fields: Any) -> None:
     """Classic Gray code: a pattern and its inverse per bit, then white and black (OpenCV's order).
 
     With the defaults the frames are exactly OpenCV's structured_light::GrayCodePattern: the
@@ -513,7 +527,8 @@ def pattern_graycode(output: Path, projector: tuple[int, int], code_width: int |
     shift hybrid); --ap, --bp and --gamma apply to those only.
     """
     width = code_width if code_width is not None else (8 if fields["steps"] else 1)
-    _write_sequence(output, PatternSpec(kind="graycode", projector_size=projector, code_width=width, **fields))
+    _write_sequence(output, PatternSpec(kind="graycode", projector_size=projector, code_width=width, **fields),
+                    overwrite=overwrite)
 
 
 @pattern.command("sine", epilog="""\b
@@ -528,9 +543,11 @@ Examples:
               help="Projector coordinate the decoding patterns code (the sine runs across it).")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True,
               help="Pattern image (.png or .bmp); the JSON goes beside it.")
-def pattern_sine(projector: tuple[int, int], cycles: float, orientation: str, output: Path) -> None:
+@_overwrite_option
+def pattern_sine(projector: tuple[int, int], cycles: float, orientation: str, output: Path, overwrite: bool) -> None:
     """A full-range sine (thesis fig. 3.6): the target of `sliscan characterize gamma`."""
-    _write_pattern(output, photometry.sine_target(projector, cycles=cycles, orientation=orientation))
+    _write_pattern(output, photometry.sine_target(projector, cycles=cycles, orientation=orientation),
+                   overwrite=overwrite)
 
 
 # --------------------------------------------------------------------------------------------
@@ -568,14 +585,15 @@ Examples:
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
               help="PatternSpec JSON of the projected sine (sliscan pattern sine).")
 @click.option("-o", "--output", type=OUTPUT_FILE, help="Write a characterization JSON with the measured gamma.")
-def characterize_gamma(capture: Path, pattern_path: Path, output: Path | None) -> None:
+@_overwrite_option
+def characterize_gamma(capture: Path, pattern_path: Path, output: Path | None, overwrite: bool) -> None:
     """Projector gamma from the capture of a sine on a plain matte target (any shape).
 
     Prints the error of the thesis's candidate gammas and the gamma of least error; the
     response table (camera level against drive level) goes into the JSON when the sine spans
     the whole drive range.
     """
-    _check_outputs([output], [capture, pattern_path])
+    _check_outputs([output], [capture, pattern_path], overwrite=overwrite)
     image, spec = _measured_capture(capture, pattern_path)
     with _about(capture, f"pattern {pattern_path}"):
         fit = photometry.estimate_gamma(image, spec)
@@ -600,14 +618,15 @@ Examples:
               help="Characterization JSON with the measured gamma: models the projected light exactly "
                    "(needed when the carrier-only pattern was not pre-corrected) and is copied into -o.")
 @click.option("-o", "--output", type=OUTPUT_FILE, help="Write a characterization JSON with the roll-off.")
+@_overwrite_option
 def characterize_rolloff(capture: Path, pattern_path: Path, characterization: Path | None,
-                         output: Path | None) -> None:
+                         output: Path | None, overwrite: bool) -> None:
     """Each carrier's attenuation by the optics, from the capture of a carrier-only pattern.
 
     Prints the relative attenuation of every carrier and the weights that compensate it; the
     JSON makes `sliscan pattern composite --from-characterization` apply them.
     """
-    _check_outputs([output], [capture, pattern_path, characterization])
+    _check_outputs([output], [capture, pattern_path, characterization], overwrite=overwrite)
     image, spec = _measured_capture(capture, pattern_path)
     measured = (photometry.Characterization(spec.projector_size) if characterization is None
                 else photometry.Characterization.load(characterization))
@@ -687,10 +706,11 @@ Examples:
 @click.option("--projector-view", type=OUTPUT_FILE,
               help="Save the thesis's projector view (chapter 5) of the scene's points.")
 @click.option("--camera-view", type=OUTPUT_FILE, help="Save the thesis's camera view (chapter 5).")
+@_overwrite_option
 def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camera_matrix: Path | None,
                  projector_matrix: Path | None, camera: tuple[int, int] | None, write_rig: Path | None,
                  output: Path, truth: Path | None, projector_view: Path | None, camera_view: Path | None,
-                 **physics: Any) -> None:
+                 overwrite: bool, **physics: Any) -> None:
     """Render a camera capture of a pattern on a scene with the virtual rig.
 
     The rig is --calibration (or --camera-matrix/--projector-matrix) if given, else the
@@ -710,7 +730,8 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
         raise click.UsageError("--projector-view and --camera-view need a single-image pattern, not a sequence")
     outputs = sequences.indexed_paths(output, spec.frame_count) if multi else [output]
     _check_outputs([*outputs, write_rig, truth, projector_view, camera_view],
-                   [pattern_path, calibration, camera_matrix, projector_matrix, *_mat5_files(mat5_prefix)])
+                   [pattern_path, calibration, camera_matrix, projector_matrix, *_mat5_files(mat5_prefix)],
+                   overwrite=overwrite)
     calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=camera,
                               projector_size=spec.projector_size)
     if calib is None:
@@ -758,6 +779,9 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
 # --------------------------------------------------------------------------------------------
 # sliscan scan
 # --------------------------------------------------------------------------------------------
+
+#: Below this fraction of the frame decoded, `sliscan scan` warns (it still writes the points).
+LOW_YIELD = 0.01
 
 #: File name endings `sliscan scan` takes from a folder.
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg", ".pgm", ".ppm")
@@ -814,9 +838,10 @@ Examples:
 @click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
               help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
 @click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
+@_overwrite_option
 def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str, timings: bool) -> None:
+         method: str, timings: bool, overwrite: bool) -> None:
     """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
     frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them.
 
@@ -829,7 +854,7 @@ def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | Non
     """
     files = _capture_files(captures)
     _check_outputs([*_mat5_files(mat5_prefix), ply, npz], [*files, pattern_path, calibration, camera_matrix,
-                                                             projector_matrix])
+                                                             projector_matrix], overwrite=overwrite)
     with _progress(3) as stage:
         stage("read")
         t0 = time.perf_counter()
@@ -859,6 +884,9 @@ def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | Non
         written = _write_scan(result, mat5_prefix=mat5_prefix, ply=ply, npz=npz)
         t3 = time.perf_counter()
     n = int(result.valid.sum())
+    if n < LOW_YIELD * result.valid.size:
+        click.echo(f"warning: {capture}: only {n / result.valid.size:.2%} of the frame decoded: check the focus, the "
+                   f"exposure and that the object is in the projector's light", err=True)
     stages = {"read": t1 - t0, **{k: v for k, v in result.timings.items() if k != "total"}, "write": t3 - t2}
     times = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
     wrote = f"wrote {', '.join(written)}" if written else "wrote nothing (give --mat5, --ply or --npz)"
@@ -889,15 +917,16 @@ Examples:
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
 @click.option("--cam-txt", type=OUTPUT_FILE, help="Also write the camera matrix as text (the thesis's cam.txt).")
 @click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
+@_overwrite_option
 def calibrate(g_file: Path, camera: tuple[int, int], projector: tuple[int, int], method: str, pixels: bool,
-              output: Path, cam_txt: Path | None, proj_txt: Path | None) -> None:
+              output: Path, cam_txt: Path | None, proj_txt: Path | None, overwrite: bool) -> None:
     """Calibrate camera and projector from a calibration grid (a G file, thesis 4.3-4.4).
 
     G_FILE holds one point per row: Xw Yw Zw (mm), xc yc (camera pixels), xp yp (projector
     phases in radians, x = phase * size / 2pi, or pixels with --pixels); binary .byt (float32)
     or text.  Prints the reprojection residuals.
     """
-    _check_outputs([output, cam_txt, proj_txt], [g_file])
+    _check_outputs([output, cam_txt, proj_txt], [g_file], overwrite=overwrite)
     rows = premat5.read_g(g_file)
     with _about(g_file):
         calib = calibrate_points(rows, camera, projector, method=method, phases=not pixels)
@@ -956,8 +985,10 @@ perspective correction of the circle centres).""")
 @click.option("--g-file", type=OUTPUT_FILE, help="Also write the calibration grid (G file: .byt binary, else text).")
 @click.option("--cam-txt", type=OUTPUT_FILE, help="Also write the camera matrix as text (the thesis's cam.txt).")
 @click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
+@_overwrite_option
 def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_path: Path, method: str,
-                         output: Path, g_file: Path | None, cam_txt: Path | None, proj_txt: Path | None) -> None:
+                         output: Path, g_file: Path | None, cam_txt: Path | None, proj_txt: Path | None,
+                         overwrite: bool) -> None:
     """Calibrate camera and projector from one capture of a 3-D circle target (thesis 4.0-4.4).
 
     CAPTURES are the frames of the sequence (files, folders or quoted globs, in the order of
@@ -966,7 +997,7 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
     calibrated by the DLT.  Prints the reprojection residuals.
     """
     files = _capture_files(captures)
-    _check_outputs([output, g_file, cam_txt, proj_txt], [*files, pattern_path, target_path])
+    _check_outputs([output, g_file, cam_txt, proj_txt], [*files, pattern_path, target_path], overwrite=overwrite)
     spec = _sequence_spec(pattern_path)
     target = CircleTarget.load(target_path)
     capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
@@ -1025,8 +1056,9 @@ inverse, then white and black).""")
               help="Estimate the projector's lens distortion, or fix it at 0 (sliscan scan cannot yet undistort "
                    "the projector).")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
+@_overwrite_option
 def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tuple[int, int], square: float,
-                        projector_distortion: bool, output: Path) -> None:
+                        projector_distortion: bool, output: Path, overwrite: bool) -> None:
     """Calibrate camera and projector (intrinsics, lens distortion, pose) from chessboard poses.
 
     Per POSE: the board's inner corners are found in the white frame and each corner's projector
@@ -1039,7 +1071,8 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
     """
     spec = _sequence_spec(pattern_path)
     pose_files = {pose: _capture_files([pose]) for pose in poses}
-    _check_outputs([output], [pattern_path, *(f for files in pose_files.values() for f in files)])
+    _check_outputs([output], [pattern_path, *(f for files in pose_files.values() for f in files)],
+                   overwrite=overwrite)
     views: list[BoardView] = []
     used: list[Path] = []
     shape = None
@@ -1109,7 +1142,8 @@ Examples:
   sliscan demo --camera 640x480 --out /tmp/demo # small and quick
   sliscan demo --pattern best --supersample 3 --seed 1""")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("demo-out"),
-              show_default=True, help="Folder for everything the demo writes.")
+              show_default=True, help="Folder for everything the demo writes (an earlier demo's files there are "
+                                      "replaced: no --overwrite needed).")
 @_camera_option(default=f"{THESIS_CAMERA[0]}x{THESIS_CAMERA[1]}", show_default=True, help="Camera size.")
 @_projector_option(default=f"{THESIS_PROJECTOR[0]}x{THESIS_PROJECTOR[1]}", show_default=True,
                    help="Projector size.")
@@ -1127,6 +1161,8 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
     10 %, uncorrected projector gamma 2.2, 1 px blur, shot and read noise, 8 bits), scans each
     capture, writes OUT/rig.json and per pattern OUT/NAME/{pattern.png, pattern.json,
     capture.png, sphere mat5 files, sphere.ply}, and prints the accuracy against the ground truth.
+    Unlike the other commands it replaces its own files from an earlier run, so it can be run
+    again into the same folder.
     """
     t0 = time.perf_counter()
     rig = simulate.virtual_rig(camera_size=camera, projector_size=projector)

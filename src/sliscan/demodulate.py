@@ -24,6 +24,7 @@ Frequencies are in cycles per camera pixel along the carrier direction (camera `
 
 from __future__ import annotations
 
+import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -142,22 +143,19 @@ def _common_spacing(carriers: NDArray[np.float64]) -> float:
     return gap
 
 
-def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
-    """Find the carriers of `spec` in a capture (thesis 3.3): detect, don't assume.
+#: A carrier counts as found when its spectral peak stands this many times above the power
+#: around it (the median within half a carrier spacing).  Clean captures reach e^5 ~ 150; a
+#: textured or partly saturated one e^2 ~ 7; a capture without the carriers stays below 1.
+MIN_PEAK_CONTRAST = 4.0
 
-    Perspective scales every carrier by the same factor, so the search is over one scale:
-    the one whose carriers all sit on spectral peaks (log power on each carrier against half
-    a spacing beside it, summed), then refined by a parabolic fit on each peak and a
-    least-squares common scale.
 
-    Raises
-    ------
-    InputError
-        If the capture is too small for the carriers or no carrier peaks are found.
+def _locate_carriers(img: NDArray[np.float32], proj: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The spectral search of `detect_carriers` along axis 1 of `img`.
+
+    Returns the refined peak position of each carrier (in rfft bins of a line) and its
+    contrast: the peak's power over the median power within half a carrier spacing around it.
     """
-    img = along_carriers(check_image("capture", image), spec)
     width = img.shape[1]
-    proj = np.asarray(spec.all_carriers, dtype=np.float64) / spec.orthogonal_lines  # cycles / projector px
     freqs, power = line_spectrum(img)
     logp = np.log(power + power.max() * 1e-12 + 1e-30)
     s_hi = 0.45 / proj.max()
@@ -174,15 +172,59 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
 
     gap = _common_spacing(proj) * scale * width  # in bins
     refined = np.empty_like(proj)
+    contrast = np.empty_like(proj)
+    bins = np.arange(freqs.size)
     for n, b in enumerate(proj * scale * width):
         lo, hi = max(1, int(np.floor(b - 0.3 * gap))), min(freqs.size - 2, int(np.ceil(b + 0.3 * gap)))
         k = lo + int(np.argmax(logp[lo : hi + 1]))
         a, c, e = logp[k - 1], logp[k], logp[k + 1]
         den = a - 2 * c + e
         refined[n] = k + (0.5 * (a - e) / den if den < 0 else 0.0)
-    peak_gain = logp[np.round(refined).astype(int)] - np.median(logp)
-    if np.any(peak_gain < np.log(4.0)):
-        raise InputError("no composite-pattern carriers found in the capture (is the pattern spec right?)")
+        around = (np.abs(bins - k) <= max(0.5 * gap, 4)) & (np.abs(bins - k) > 2) & (bins > 0)
+        contrast[n] = np.exp(c - np.median(logp[around])) if around.any() else 0.0
+    return refined, contrast
+
+
+def _carriers_missing(img: NDArray[np.float32], spec: PatternSpec, found: NDArray[np.bool_]) -> str:
+    """Why the carriers of `spec` are not (all) in the capture, as specifically as the spectrum tells."""
+    carriers = np.asarray(spec.all_carriers)
+
+    def listed(mask: NDArray[np.bool_]) -> str:
+        return ", ".join(f"{f:g}" for f in carriers[mask])
+
+    proj = carriers / spec.orthogonal_lines
+    with contextlib.suppress(InputError):
+        if np.all(_locate_carriers(np.ascontiguousarray(img.T), proj)[1] >= MIN_PEAK_CONTRAST):
+            return (f"no carriers found along the camera's {'x' if spec.orientation == 'rows' else 'y'} but across it: "
+                    f"is the capture rotated by 90 degrees (or the pattern's orientation wrong)?")
+    if found.any():  # typically the finest carriers, faded by blur
+        return (f"carriers near {listed(~found)} cycles/width not found (only {listed(found)}): is the capture out of "
+                f"focus (or the camera too coarse for the finest carriers, or the pattern spec wrong)?")
+    return f"no carriers found near {listed(~found)} cycles/width: is this a composite-pattern capture?"
+
+
+def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
+    """Find the carriers of `spec` in a capture (thesis 3.3): detect, don't assume.
+
+    Perspective scales every carrier by the same factor, so the search is over one scale:
+    the one whose carriers all sit on spectral peaks (log power on each carrier against half
+    a spacing beside it, summed), then refined by a parabolic fit on each peak and a
+    least-squares common scale.  Every carrier's peak must stand `MIN_PEAK_CONTRAST` times
+    above the spectrum around it.
+
+    Raises
+    ------
+    InputError
+        If the capture is too small for the carriers or some carrier peaks are not found (the
+        message says which, and guesses why: another pattern, defocus, a rotated capture).
+    """
+    img = along_carriers(check_image("capture", image), spec)
+    width = img.shape[1]
+    proj = np.asarray(spec.all_carriers, dtype=np.float64) / spec.orthogonal_lines  # cycles / projector px
+    refined, contrast = _locate_carriers(img, proj)
+    found = contrast >= MIN_PEAK_CONTRAST
+    if not found.all():
+        raise InputError(_carriers_missing(img, spec, found))
     scale = float(np.sum(refined * proj) / np.sum(proj * proj) / width)
     window = int(round(1.0 / (_common_spacing(proj) * scale)))
     if window > width:
@@ -541,6 +583,25 @@ def demodulate_bandpass(image: NDArray[np.floating], carriers: Carriers, *, orde
     return Demodulated(amplitude=amp, dc=dc, residual=residual)
 
 
+#: Exposure limits of `check_exposure`: a capture is dark when 99 % of its pixels lie below
+#: `DARK_LEVEL` of full scale, saturated when more than `SATURATED_FRACTION` of them reach
+#: `SATURATED_LEVEL` (254 of 255).
+DARK_LEVEL = 0.03
+SATURATED_LEVEL = 254 / 255
+SATURATED_FRACTION = 0.5
+
+
+def check_exposure(image: NDArray[np.float32]) -> None:
+    """Refuse a capture too dark or too saturated to carry the pattern (one-line `InputError`)."""
+    if np.percentile(image, 99) < DARK_LEVEL:
+        raise InputError(f"the capture is dark (99 % of pixels below {DARK_LEVEL:.0%} of full scale): is the projector "
+                         f"on and the exposure long enough?")
+    saturated = float(np.mean(image >= SATURATED_LEVEL))
+    if saturated > SATURATED_FRACTION:
+        raise InputError(f"the capture is saturated ({saturated:.0%} of pixels at full scale): shorten the exposure "
+                         f"or dim the projector")
+
+
 def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = "window",
                carriers: Carriers | None = None) -> tuple[Demodulated, Carriers]:
     """Detect the carriers (unless given) and demodulate a capture in camera orientation.
@@ -564,6 +625,7 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     img = check_image("capture", image)
     if method not in ("window", "bandpass"):
         raise InputError(f"method must be 'window' or 'bandpass', got {method!r}")
+    check_exposure(img)
     view = along_carriers(img, spec)
     found = carriers if carriers is not None else detect_carriers(img, spec)
     run = demodulate_window if method == "window" else demodulate_bandpass

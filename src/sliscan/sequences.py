@@ -76,6 +76,12 @@ def indexed_paths(path: str | os.PathLike, count: int) -> list[Path]:
     return [path.with_name(f"{path.stem}_{k:0{digits}d}{path.suffix}") for k in range(count)]
 
 
+def frame_paths(path: str | os.PathLike, spec: PatternSpec) -> list[Path]:
+    """The frame images `save_sequence` writes beside the JSON `path`: ``DIR/pmp.json`` ->
+    ``DIR/pmp_00.png``, ``DIR/pmp_01.png``, ... (`indexed_paths`)."""
+    return indexed_paths(Path(path).with_suffix(".png"), spec.frame_count)
+
+
 def save_sequence(path: str | os.PathLike, spec: PatternSpec) -> tuple[list[Path], Path]:
     """Write the images of a multi-frame spec (8-bit PNG) and its PatternSpec JSON.
 
@@ -91,7 +97,7 @@ def save_sequence(path: str | os.PathLike, spec: PatternSpec) -> tuple[list[Path
     json_path = Path(path)
     if json_path.suffix.lower() != ".json":
         raise InputError(f"{json_path}: give the JSON file name (e.g. pmp.json); the frames go beside it")
-    paths = indexed_paths(json_path.with_suffix(".png"), spec.frame_count)
+    paths = frame_paths(json_path, spec)
     spec = spec.with_(frames=tuple(p.name for p in paths))
     with atomic_path(json_path) as tmp:
         tmp.write_text(json.dumps(spec.to_dict(), indent=2) + "\n")

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan._validate import InputError, atomic_write_text, check_finite_matrix
+from sliscan._validate import InputError, atomic_write_text, check_finite_matrix, check_size
 
 #: The pattern kinds this version knows: single-frame composite kinds, then multi-frame ones.
 COMPOSITE_KINDS = ("composite", "carrier_only", "modified_composite")
@@ -33,6 +33,13 @@ SEQUENCE_ORIENTATIONS = ORIENTATIONS + ("both",)
 _COMPOSITE_FIELDS = ("bits", "carriers", "weights", "pilot", "pilot_weight", "skip_zero_code", "modified_frequency",
                      "modified_amplitude", "image")
 _MULTI_FRAME_FIELDS = ("steps", "frequencies", "code_width", "frames")
+#: Scalar fields that must be finite numbers in every kind.
+_NUMBER_FIELDS = ("a_p", "b_p", "gamma", "pilot_weight", "modified_frequency", "modified_amplitude")
+
+
+def _is_finite_number(value: object) -> bool:
+    """A finite int or float (not a bool, not a string)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @dataclass(frozen=True)
@@ -128,7 +135,10 @@ class PatternSpec:
     frames: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "projector_size", tuple(int(v) for v in self.projector_size))
+        try:
+            object.__setattr__(self, "projector_size", check_size("projector_size", self.projector_size, minimum=8))
+        except InputError as exc:
+            raise InputError(f"invalid pattern spec: {exc}") from None
         object.__setattr__(self, "carriers", tuple(float(v) for v in self.carriers))
         object.__setattr__(self, "weights", tuple(float(v) for v in self.weights))
         object.__setattr__(self, "frequencies", tuple(float(v) for v in self.frequencies))
@@ -143,11 +153,13 @@ class PatternSpec:
 
     def _problems(self) -> list[str]:
         out = []
-        w, h = self.projector_size
         if self.kind not in PATTERN_KINDS:
             return [f"kind must be one of {PATTERN_KINDS}, got {self.kind!r}"]
-        if w < 8 or h < 8:
-            return [f"projector_size must be at least 8x8, got {w}x{h}"]
+        for name in _NUMBER_FIELDS:
+            if not _is_finite_number(getattr(self, name)):
+                return [f"{name} must be a finite number, got {getattr(self, name)!r}"]
+        if not (self.image is None or isinstance(self.image, str)):
+            return [f"image must be a file name, got {self.image!r}"]
         out += self._sequence_problems() if self.kind in MULTI_FRAME_KINDS else self._composite_problems()
         if not (self.gamma > 0 and math.isfinite(self.gamma)):
             out.append(f"gamma must be positive, got {self.gamma}")
@@ -165,6 +177,14 @@ class PatternSpec:
         w, h = self.projector_size
         if self.frames:
             out.append(f"frames are for the multi-frame kinds {MULTI_FRAME_KINDS}, not {self.kind!r}")
+        if not isinstance(self.skip_zero_code, bool):
+            return [f"skip_zero_code must be true or false, got {self.skip_zero_code!r}"]
+        if isinstance(self.bits, bool) or not isinstance(self.bits, int):
+            return [f"bits must be an integer, got {self.bits!r}"]
+        if not all(math.isfinite(v) for v in self.weights):
+            return [f"weights must be finite numbers, got {list(self.weights)}"]
+        if not (self.pilot is None or _is_finite_number(self.pilot)):
+            return [f"pilot must be a finite number or null, got {self.pilot!r}"]
         if not 1 <= self.bits <= 16:
             out.append(f"bits must be in 1..16, got {self.bits}")
         if len(self.carriers) != self.bits:
@@ -335,10 +355,7 @@ class Device:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "matrix", check_finite_matrix("matrix", self.matrix, (3, 4)))
-        w, h = (int(v) for v in self.size)
-        if w < 1 or h < 1:
-            raise InputError(f"size must be positive (W, H), got {self.size}")
-        object.__setattr__(self, "size", (w, h))
+        object.__setattr__(self, "size", check_size("size", self.size))
         if self.intrinsics is not None:
             object.__setattr__(self, "intrinsics", check_finite_matrix("intrinsics", self.intrinsics, (3, 3)))
         if self.distortion is not None:
@@ -475,10 +492,14 @@ def _load_json(path: str | os.PathLike) -> dict[str, Any]:
         text = p.read_text()
     except OSError as exc:
         raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{p}: not valid JSON (not UTF-8 text)") from None
     try:
         d = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"{p}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except (ValueError, RecursionError) as exc:  # a number of over 4300 digits, nesting too deep
+        raise InputError(f"{p}: not valid JSON ({type(exc).__name__}: {exc})") from None
     if not isinstance(d, dict):
         raise InputError(f"{p}: expected a JSON object")
     return d

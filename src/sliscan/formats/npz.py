@@ -9,13 +9,18 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from sliscan._validate import InputError, atomic_path
 from sliscan.types import ScanResult
+
+#: What numpy and zipfile raise on a corrupt archive (a huge declared array shape: MemoryError).
+_CORRUPT = (ValueError, EOFError, KeyError, OSError, MemoryError, struct.error, zlib.error, zipfile.BadZipFile)
 
 #: Array fields of ScanResult and the dtype each is stored and read back with.
 ARRAY_DTYPES = {
@@ -75,7 +80,7 @@ def read_scan_npz(path: str | os.PathLike) -> ScanResult:
     with f:
         try:
             loaded = np.load(f, allow_pickle=False)
-        except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+        except _CORRUPT as exc:
             raise InputError(f"{p}: not a valid npz file ({exc})") from None
         if not isinstance(loaded, np.lib.npyio.NpzFile):
             raise InputError(f"{p}: not an npz archive (a single .npy array)")
@@ -86,7 +91,7 @@ def read_scan_npz(path: str | os.PathLike) -> ScanResult:
             try:
                 arrays = {name: loaded[name].astype(dtype) for name, dtype in ARRAY_DTYPES.items()}
                 timings = json.loads(str(loaded["timings"]))
-            except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+            except _CORRUPT as exc:
                 raise InputError(f"{p}: corrupt npz file ({exc})") from None
     if not isinstance(timings, dict):
         raise InputError(f"{p}: timings must be a JSON object")
