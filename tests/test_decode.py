@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sliscan import InputError, patterns, simulate
 from sliscan.decode import agrees_with_neighbours, decode, two_means
@@ -182,3 +184,30 @@ def test_neighbour_agreement_kernel_equals_the_numpy_form(radius):
     kept = agrees_with_neighbours(stripe, valid, radius=radius)
     np.testing.assert_array_equal(kept, _agreement_reference(stripe, valid, radius))
     assert 0.3 < kept.mean() < valid.mean()
+
+
+def _two_means_by_masks(v, iterations=20):
+    """The straightforward form of `two_means`: boolean masks and np.median each iteration."""
+    v = v[np.isfinite(v)].astype(np.float64)
+    lo, hi = float(np.percentile(v, 5)), float(np.percentile(v, 95))
+    v = np.clip(v, float(np.percentile(v, 0.5)), float(np.percentile(v, 99.5)))
+    for _ in range(iterations):
+        t = 0.5 * (lo + hi)
+        low, high = v[v < t], v[v >= t]
+        if low.size == 0 or high.size == 0:
+            break
+        new = float(np.median(low)), float(np.median(high))
+        if new == (lo, hi):
+            break
+        lo, hi = new
+    return lo, hi
+
+
+@settings(max_examples=60, derandomize=True)
+@given(st.integers(1, 3000), st.integers(0, 3000), st.floats(0.01, 0.3), st.booleans(), st.integers(0, 2**31))
+def test_two_means_on_sorted_slices_equals_the_masked_medians(n_off, n_on, spread, rounded, seed):
+    rng = np.random.default_rng(seed)
+    v = np.concatenate([rng.normal(0.1, spread, n_off), rng.gamma(2, 0.3, n_on)]).astype(np.float32)
+    if rounded:  # ties at the threshold
+        v = np.round(v * 10) / 10
+    assert two_means(v) == _two_means_by_masks(v)

@@ -75,16 +75,22 @@ def two_means(values: NDArray[np.floating], *, iterations: int = 20) -> tuple[fl
         return 0.0, 1.0
     lo, hi = float(np.percentile(v, 5)), float(np.percentile(v, 95))
     v = np.clip(v, float(np.percentile(v, 0.5)), float(np.percentile(v, 99.5)))  # a few wild values cannot own a cluster
+    v.sort()  # each cluster is then a slice, and its median a middle element: no partition per iteration
     for _ in range(iterations):
-        t = 0.5 * (lo + hi)
-        low, high = v[v < t], v[v >= t]
-        if low.size == 0 or high.size == 0:
+        split = int(np.searchsorted(v, 0.5 * (lo + hi), side="left"))
+        if split == 0 or split == v.size:
             break
-        new = float(np.median(low)), float(np.median(high))
+        new = _sorted_median(v[:split]), _sorted_median(v[split:])
         if new == (lo, hi):
             break
         lo, hi = new
     return lo, hi
+
+
+def _sorted_median(a: NDArray[np.float64]) -> float:
+    """Median of a sorted non-empty 1-D array (equal to ``np.median``)."""
+    middle = a.size // 2
+    return float(a[middle]) if a.size % 2 else float((a[middle - 1] + a[middle]) / 2)
 
 
 def _sample(mask: NDArray[np.bool_], limit: int = 200_000) -> NDArray[np.bool_]:
