@@ -4,16 +4,17 @@ on the virtual rig (truth known) and on real captures (skipped when the data fol
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from sliscan import InputError, reconstruct, sequences, simulate
+from sliscan import InputError, figures, reconstruct, sequences, simulate
 from sliscan._validate import read_image, write_images
-from sliscan.calibrate import (board_view, calibrate_board, calibrate_target, ellipse_centres, match_circles,
-                               triangulate_correspondences)
+from sliscan.calibrate import (Residuals, board_view, calibrate_board, calibrate_target, ellipse_centres,
+                               match_circles, triangulate_correspondences)
 from sliscan.cli import main
 from sliscan.formats.premat5 import read_g
 from sliscan.targets import CircleTarget, bilinear, detect_circles, local_fit
@@ -225,7 +226,39 @@ def run(args: list[str], capsys) -> tuple[int, str, str]:
     return exit_.value.code, out, err
 
 
-def test_cli_calibrate_target(tmp_path, small_rig, target_capture, capsys):
+@pytest.fixture
+def plotted(monkeypatch) -> list[list[dict]]:
+    """The panels (view, device, RMS) of every residual plot the CLI draws."""
+    pytest.importorskip("matplotlib")
+    calls: list[list[dict]] = []
+    real = figures.plot_residuals
+
+    def spy(*args, **kwargs):
+        calls.append(real(*args, **kwargs))
+        return calls[-1]
+
+    monkeypatch.setattr("sliscan.cli.plot_residuals", spy)
+    return calls
+
+
+def check_png(path: Path, rows: int) -> None:
+    """A readable PNG of two 360-px panels per row (3.6 in at 100 dpi)."""
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    image = cv2.imread(str(path))
+    assert image is not None and image.shape[1] == 720 and 360 * rows <= image.shape[0] <= 360 * rows + 60
+    assert not list(path.parent.glob(f".{path.name}.*"))  # no temporary file left
+
+
+def test_plot_without_matplotlib_says_how_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    residuals = Residuals(("v",), (np.zeros((3, 2)),), (np.zeros((3, 2)),))
+    with pytest.raises(InputError, match=r"^plotting needs matplotlib: pip install 'sliscan\[plot\]'$"):
+        figures.plot_residuals(tmp_path / "r.png", residuals)
+    assert not list(tmp_path.iterdir())
+
+
+def test_cli_calibrate_target(tmp_path, small_rig, target_capture, capsys, plotted):
     capture, _, target = target_capture
     sequences.save_sequence(tmp_path / "pmp" / "pmp.json", TARGET_SPEC)
     frames = sequences.indexed_paths(tmp_path / "cap" / "cap.png", len(capture.images))
@@ -233,12 +266,21 @@ def test_cli_calibrate_target(tmp_path, small_rig, target_capture, capsys):
     target.save(tmp_path / "target.json")
     base = ["calibrate-target", str(tmp_path / "cap"), "--pattern", str(tmp_path / "pmp" / "pmp.json")]
     code, out, err = run(base + ["--target", str(tmp_path / "target.json"), "-o", str(tmp_path / "rig.json"),
-                                 "--g-file", str(tmp_path / "G.byt")], capsys)
+                                 "--g-file", str(tmp_path / "G.byt"), "--plot", str(tmp_path / "res.png")], capsys)
     assert code == 0, err
-    assert "18 circles" in out and "rig.json" in out
+    assert "18 circles" in out and "rig.json" in out and "res.png" in out
     assert read_g(tmp_path / "G.byt").shape == (18, 7)
     rig = json.loads((tmp_path / "rig.json").read_text())
     assert rig["residuals"]["projector"]["rms_px"] < 0.2
+    # The plot: one row (camera, projector) of the 18 circles, with the JSON's RMS values.
+    check_png(tmp_path / "res.png", rows=1)
+    [panels] = plotted
+    assert [(p["device"], p["points"]) for p in panels] == [("camera", 18), ("projector", 18)]
+    for p in panels:
+        assert p["rms_px"] == pytest.approx(rig["residuals"][p["device"]]["rms_px"], rel=1e-9)
+    code, _, err = run(base + ["--target", str(tmp_path / "target.json"), "-o", str(tmp_path / "rig2.json"),
+                               "--plot", str(tmp_path / "res.png")], capsys)
+    assert code == 2 and "res.png exists (use --overwrite)" in err and not (tmp_path / "rig2.json").exists()
 
     CircleTarget(np.vstack([target.centres, [[0.0, 0.0, 700.0]]])).save(tmp_path / "19.json")
     code, _, err = run(base + ["--target", str(tmp_path / "19.json"), "-o", str(tmp_path / "bad.json")], capsys)
@@ -249,19 +291,29 @@ def test_cli_calibrate_target(tmp_path, small_rig, target_capture, capsys):
     assert not (tmp_path / "bad.json").exists()
 
 
-def test_cli_calibrate_board_skips_a_pose_without_a_board(tmp_path, board_captures, capsys):
+def test_cli_calibrate_board_skips_a_pose_without_a_board(tmp_path, board_captures, capsys, plotted):
     sequences.save_sequence(tmp_path / "pmp.json", BOARD_SPEC)
     poses = []
     for k, images in enumerate([*board_captures, np.zeros_like(board_captures[0])]):
         poses.append(tmp_path / f"pose_{k}")
         write_images(sequences.indexed_paths(poses[-1] / "f.png", len(images)), images)
     base = ["calibrate-board", "--pattern", str(tmp_path / "pmp.json"), "--board", "9x7", "--square", "30"]
-    code, out, err = run(base + [*map(str, poses), "-o", str(tmp_path / "rig.json")], capsys)
+    code, out, err = run(base + [*map(str, poses), "-o", str(tmp_path / "rig.json"),
+                                 "--plot", str(tmp_path / "res.png")], capsys)
     assert code == 0, err
     assert "pose_4: no chessboard of 9x7 inner corners found; skipping this pose" in err
-    assert "4 of 5 poses" in out
+    assert "4 of 5 poses" in out and "res.png" in out
     rig = json.loads((tmp_path / "rig.json").read_text())
     assert len(rig["camera"]["distortion"]) == 5 and len(rig["views"]) == 4
+    assert not any(isinstance(x, list) for v in rig["views"] for x in v.values())  # no residual vectors in it
+    # The plot: a row per good pose, its camera and projector RMS those of the JSON.
+    check_png(tmp_path / "res.png", rows=4)
+    [panels] = plotted
+    assert [p["view"] for p in panels] == [f"pose_{k}" for k in range(4) for _ in range(2)]
+    for p in panels:
+        view = rig["views"][int(p["view"][-1])]
+        assert p["rms_px"] == view[f"{p['device']}_rms_px"]
+        assert p["points"] == view["corners" if p["device"] == "camera" else "projector_corners"]
 
     code, _, err = run(base + [*map(str, poses[2:]), "-o", str(tmp_path / "bad.json")], capsys)
     assert code == 2 and "only 2 of 3 poses are usable" in err

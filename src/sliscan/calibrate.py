@@ -17,6 +17,10 @@ projector directions (`sliscan.sequences.decode_frames`):
   the camera and the projector (an inverse camera) calibrated with OpenCV, intrinsics and lens
   distortion included, and their relative pose; world = camera frame.
 
+Both can give every point's reprojection residual vector beside the calibration (`Residuals`:
+``calibrate_board(..., with_residuals=True)``, `target_residuals`), for the plots of
+`sliscan.figures.plot_residuals`; the calibration JSON keeps only their RMS and maximum.
+
 Both estimators return the same normalised form: the first three entries of the third row have
 unit norm, so that row is the device's viewing direction and ``M[2] @ [Xw, Yw, Zw, 1]`` is the
 depth in mm in front of the device (positive for the calibration points).
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -606,12 +611,68 @@ def board_view(maps: Mapping[str, ProjectorMap], inner_corners: tuple[int, int],
     return BoardView(corners, projector)
 
 
-def _view_rms(objects: list[NDArray[np.float32]], images: list[NDArray[np.float32]], rvecs: Sequence[FloatArray],
-              tvecs: Sequence[FloatArray], k: FloatArray, dist: FloatArray) -> tuple[list[float], FloatArray]:
-    """Per-view RMS reprojection error (px) and every point's error, of one calibrated device."""
-    errors = [np.linalg.norm(cv2.projectPoints(o, r, t, k, dist)[0][:, 0] - i, axis=1)
-              for o, i, r, t in zip(objects, images, rvecs, tvecs)]
-    return [float(np.sqrt(np.mean(e**2))) for e in errors], np.concatenate(errors)
+def _vector_rms(vectors: FloatArray) -> float:
+    """RMS length (px) of residual vectors ``(N, 2)``."""
+    return float(np.sqrt(np.mean(np.sum(np.asarray(vectors, dtype=np.float64) ** 2, axis=1))))
+
+
+@dataclass(frozen=True, eq=False)
+class Residuals:
+    """Every point's reprojection residual vector, per view: kept beside a calibration (for
+    `sliscan.figures.plot_residuals`), not in its JSON.
+
+    Attributes
+    ----------
+    labels : tuple of str
+        One name per view.
+    camera, projector : tuple of (N_k, 2) float64 arrays
+        Per view, ``projected - observed`` ``(dx, dy)`` in pixels, one row per point the device
+        was calibrated with.
+    points : str
+        What a point is (``"corner"``, ``"circle"``), for the plot.
+    """
+
+    labels: tuple[str, ...]
+    camera: tuple[FloatArray, ...]
+    projector: tuple[FloatArray, ...]
+    points: str = "point"
+
+    def rms(self, device: str) -> list[float]:
+        """Per-view RMS residual length (px) of ``"camera"`` or ``"projector"``."""
+        return [_vector_rms(v) for v in getattr(self, device)]
+
+
+def _view_residuals(objects: list[NDArray[np.float32]], images: list[NDArray[np.float32]],
+                    rvecs: Sequence[FloatArray], tvecs: Sequence[FloatArray], k: FloatArray,
+                    dist: FloatArray) -> list[FloatArray]:
+    """Per-view residual vectors ``projected - observed`` (px) of one calibrated device."""
+    return [(cv2.projectPoints(o, r, t, k, dist)[0][:, 0] - i).astype(np.float64)
+            for o, i, r, t in zip(objects, images, rvecs, tvecs)]
+
+
+def target_residuals(calibration: Calibration, g_rows: ArrayLike, *, label: str = "target") -> Residuals:
+    """Residual vectors of every circle of a `calibrate_target` result, from its G rows.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The DLT result (``projector.size`` converts the phases to pixels).
+    g_rows : (N, 7) array
+        The rows it was calibrated from (``Xw Yw Zw xc yc xp_phase yp_phase``).
+    label : str
+        The view's name.
+
+    Returns
+    -------
+    residuals : Residuals
+        One view; its RMS values are the ``residuals`` of the calibration's ``extra``.
+    """
+    rows = check_g(g_rows)
+    width, height = calibration.projector.size
+    projector_px = np.c_[phase_to_pixel(rows[:, 5], width), phase_to_pixel(rows[:, 6], height)]
+    world = rows[:, :3]
+    return Residuals((label,), (calibration.camera.project(world) - rows[:, 3:5],),
+                     (calibration.projector.project(world) - projector_px,), "circle")
 
 
 def triangulate_correspondences(calibration: Calibration, camera_points: ArrayLike,
@@ -678,9 +739,23 @@ def board_geometry(points: ArrayLike, inner_corners: tuple[int, int], square: fl
             "spacing_error": float(steps.mean() / square - 1)}
 
 
+@overload
 def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
                     camera_size: tuple[int, int], projector_size: tuple[int, int], *,
-                    projector_distortion: bool = True) -> Calibration:
+                    projector_distortion: bool = ..., with_residuals: Literal[False] = ...) -> Calibration: ...
+
+
+@overload
+def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
+                    camera_size: tuple[int, int], projector_size: tuple[int, int], *,
+                    projector_distortion: bool = ..., with_residuals: Literal[True]
+                    ) -> tuple[Calibration, Residuals]: ...
+
+
+def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
+                    camera_size: tuple[int, int], projector_size: tuple[int, int], *,
+                    projector_distortion: bool = True,
+                    with_residuals: bool = False) -> Calibration | tuple[Calibration, Residuals]:
     """Calibrate camera and projector (intrinsics, lens distortion, relative pose) from board views.
 
     The camera is calibrated from the corners of every view (`cv2.calibrateCamera`, Zhang's
@@ -701,6 +776,8 @@ def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], 
     projector_distortion : bool
         Estimate the projector's lens distortion (True) or fix it at 0 (False: a calibration
         that `sliscan.reconstruct` can use today, as it does not yet undistort the projector).
+    with_residuals : bool
+        Also return every corner's residual vectors.
 
     Returns
     -------
@@ -712,6 +789,10 @@ def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], 
         `board_geometry` of its corners triangulated with the result) and ``outlier_views``
         (indices of views whose camera or projector RMS exceeds twice the median view's and
         0.5 px).
+    residuals : Residuals
+        Only with ``with_residuals``: per view (``"view 0"``, ...), the camera's residual vectors
+        of every corner and the projector's of the decoded ones; their per-view RMS values are
+        the ``views``' ``camera_rms_px`` and ``projector_rms_px``.
 
     Raises
     ------
@@ -740,8 +821,12 @@ def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], 
     rotation, translation = stereo[5], stereo[6]
     camera = Device(kc @ np.eye(3, 4), camera_size, intrinsics=kc, distortion=dc.ravel()[:5])
     projector = Device(kp @ np.c_[rotation, translation], projector_size, intrinsics=kp, distortion=dp.ravel()[:5])
-    camera_rms, camera_errors = _view_rms([board] * len(views), camera_images, rc, tc, kc, dc)
-    projector_rms, projector_errors = _view_rms(objects, projector_images, rp, tp, kp, dp)
+    camera_vectors = _view_residuals([board] * len(views), camera_images, rc, tc, kc, dc)
+    projector_vectors = _view_residuals(objects, projector_images, rp, tp, kp, dp)
+    camera_rms = [_vector_rms(v) for v in camera_vectors]
+    projector_rms = [_vector_rms(v) for v in projector_vectors]
+    camera_errors = np.linalg.norm(np.concatenate(camera_vectors), axis=1)
+    projector_errors = np.linalg.norm(np.concatenate(projector_vectors), axis=1)
     calibration = Calibration(camera, projector)
     per_view = []
     for k, view in enumerate(views):
@@ -757,4 +842,8 @@ def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], 
              "residuals": {"camera": summarize_residuals(camera_errors),
                            "projector": summarize_residuals(projector_errors)},
              "stereo_rms_px": float(stereo[0]), "views": per_view, "outlier_views": outliers}
-    return Calibration(camera, projector, extra)
+    result = Calibration(camera, projector, extra)
+    if not with_residuals:
+        return result
+    labels = tuple(f"view {k}" for k in range(len(views)))
+    return result, Residuals(labels, tuple(camera_vectors), tuple(projector_vectors), "corner")

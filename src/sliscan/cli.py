@@ -36,8 +36,9 @@ from rich.table import Table
 
 from sliscan import __version__, evaluate, patterns, photometry, sequences, simulate
 from sliscan._validate import InputError, atomic_path, read_image, write_image, write_images
-from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, board_view, calibrate_board, calibrate_points,
-                               calibrate_target)
+from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
+                               calibrate_points, calibrate_target, target_residuals)
+from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
 from sliscan.pipeline import Scanner
@@ -985,10 +986,12 @@ perspective correction of the circle centres).""")
 @click.option("--g-file", type=OUTPUT_FILE, help="Also write the calibration grid (G file: .byt binary, else text).")
 @click.option("--cam-txt", type=OUTPUT_FILE, help="Also write the camera matrix as text (the thesis's cam.txt).")
 @click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
+@click.option("--plot", type=OUTPUT_FILE,
+              help="Also write a PNG of the camera and projector residuals per circle (needs sliscan[plot]).")
 @_overwrite_option
 def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_path: Path, method: str,
                          output: Path, g_file: Path | None, cam_txt: Path | None, proj_txt: Path | None,
-                         overwrite: bool) -> None:
+                         plot: Path | None, overwrite: bool) -> None:
     """Calibrate camera and projector from one capture of a 3-D circle target (thesis 4.0-4.4).
 
     CAPTURES are the frames of the sequence (files, folders or quoted globs, in the order of
@@ -997,7 +1000,10 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
     calibrated by the DLT.  Prints the reprojection residuals.
     """
     files = _capture_files(captures)
-    _check_outputs([output, g_file, cam_txt, proj_txt], [*files, pattern_path, target_path], overwrite=overwrite)
+    _check_outputs([output, g_file, cam_txt, proj_txt, plot], [*files, pattern_path, target_path],
+                   overwrite=overwrite)
+    if plot is not None:
+        require_matplotlib()
     spec = _sequence_spec(pattern_path)
     target = CircleTarget.load(target_path)
     capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
@@ -1020,6 +1026,10 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
         if path is not None:
             write_matrix_txt(path, device.matrix)
             written.append(str(path))
+    if plot is not None:
+        plot_residuals(plot, target_residuals(calib, rows, label=target_path.name),
+                       title=f"calibrate-target: {method} DLT, {len(rows)} circles")
+        written.append(str(plot))
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} circles (perspective bias "
                f"{calib.extra['perspective_bias_px']:.2g} px corrected); reprojection {_residual_summary(calib)}")
 
@@ -1056,9 +1066,11 @@ inverse, then white and black).""")
               help="Estimate the projector's lens distortion, or fix it at 0 (sliscan scan cannot yet undistort "
                    "the projector).")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
+@click.option("--plot", type=OUTPUT_FILE,
+              help="Also write a PNG of the camera and projector residuals of each pose (needs sliscan[plot]).")
 @_overwrite_option
 def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tuple[int, int], square: float,
-                        projector_distortion: bool, output: Path, overwrite: bool) -> None:
+                        projector_distortion: bool, output: Path, plot: Path | None, overwrite: bool) -> None:
     """Calibrate camera and projector (intrinsics, lens distortion, pose) from chessboard poses.
 
     Per POSE: the board's inner corners are found in the white frame and each corner's projector
@@ -1071,8 +1083,10 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
     """
     spec = _sequence_spec(pattern_path)
     pose_files = {pose: _capture_files([pose]) for pose in poses}
-    _check_outputs([output], [pattern_path, *(f for files in pose_files.values() for f in files)],
+    _check_outputs([output, plot], [pattern_path, *(f for files in pose_files.values() for f in files)],
                    overwrite=overwrite)
+    if plot is not None:
+        require_matplotlib()
     views: list[BoardView] = []
     used: list[Path] = []
     shape = None
@@ -1095,13 +1109,18 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
             raise InputError(f"only {len(views)} of {len(poses)} poses are usable; calibration needs at least "
                              f"{MIN_BOARD_VIEWS}")
         stage("calibrate")
-        calib = calibrate_board(views, board, square, (shape[1], shape[0]), spec.projector_size,
-                                projector_distortion=projector_distortion)
+        calib, residuals = calibrate_board(views, board, square, (shape[1], shape[0]), spec.projector_size,
+                                           projector_distortion=projector_distortion, with_residuals=True)
         calib.save(output)
+    written = [str(output)]
+    if plot is not None:
+        residuals = Residuals(tuple(p.name for p in used), residuals.camera, residuals.projector, residuals.points)
+        plot_residuals(plot, residuals, title=f"calibrate-board: {len(views)} poses, {board[0]}x{board[1]} corners")
+        written.append(str(plot))
     Console().print(_board_table(calib, used))
     outliers = calib.extra["outlier_views"]
     flagged = f"; outlier poses: {', '.join(str(used[k]) for k in outliers)}" if outliers else ""
-    click.echo(f"wrote {output}: {len(views)} of {len(poses)} poses, {board[0]}x{board[1]} corners; reprojection "
+    click.echo(f"wrote {', '.join(written)}: {len(views)} of {len(poses)} poses, {board[0]}x{board[1]} corners; reprojection "
                f"{_residual_summary(calib)}; stereo RMS {calib.extra['stereo_rms_px']:.3g} px{flagged}")
 
 
