@@ -191,10 +191,7 @@ def test_sphere_scan_accuracy(small_rig, sphere):
     assert np.sqrt(np.mean(err[smooth] ** 2)) < 0.5  # measured 0.23 mm
 
     on_sphere = smooth & (np.abs(np.linalg.norm(truth.points - [0, 0, 800], axis=-1) - 122.555) < 1)
-    p = result.points[on_sphere].astype(np.float64)
-    solution, *_ = np.linalg.lstsq(np.c_[2 * p, np.ones(len(p))], (p**2).sum(axis=1), rcond=None)
-    centre = solution[:3]
-    radius = np.sqrt(solution[3] + centre @ centre)
+    centre, radius, _ = evaluate.fit_sphere(result.points[on_sphere])
     assert radius == pytest.approx(122.555, abs=0.5)  # measured 122.58 mm
     np.testing.assert_allclose(centre, [0, 0, 800], atol=0.5)
     assert result.stripe[result.valid].max() < 64 and result.stripe[~result.valid].tolist() == [-1] * (~result.valid).sum()
