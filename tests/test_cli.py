@@ -344,7 +344,7 @@ PMP_BAD: dict[str, tuple[tuple[str, ...], str]] = {
     "a frame missing": (("cap/pmp_0[0-4].png",), "needs 6 frames (1 direction x 2 frequencies x 3 steps), got 5"),
     "a frame of another size": (("cap/pmp_0[0-4].png", "pmp_small.png"), "pmp_small.png: the frame is 320x240"),
     "an empty glob": (("cap/none_*.png",), "matches no files"),
-    "a composite pattern with many captures": (("cap",), "takes one capture, got 6"),
+    "a composite pattern with many captures and --ply": (("cap",), "a batch writes into --out DIR"),
 }
 
 

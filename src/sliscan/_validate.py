@@ -104,26 +104,31 @@ def read_image(path: str | os.PathLike) -> NDArray[np.float32]:
 
     Colour images are converted to grey (OpenCV's luma weights); 16-bit files keep their depth.
     """
-    import cv2
-
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: no such file")
-    data = np.fromfile(p, dtype=np.uint8)
+    return decode_image(np.fromfile(p, dtype=np.uint8), str(p))
+
+
+def decode_image(data: bytes | NDArray[np.uint8], name: str) -> NDArray[np.float32]:
+    """`read_image` of an image file's bytes (PNG, BMP, TIFF, ...); `name` labels errors."""
+    import cv2
+
+    buf = np.frombuffer(data, dtype=np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data
     try:
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     except cv2.error:  # OpenCV refuses some broken headers (e.g. a huge declared size) by raising
         img = None
     if img is None:
-        raise InputError(f"{p}: not an image (cannot decode)")
+        raise InputError(f"{name}: not an image (cannot decode)")
     if img.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         img = cv2.cvtColor(img, code)
     if img.dtype not in (np.uint8, np.uint16):
         img = img.astype(np.float32)
         if img.max(initial=0) > 1:
-            raise InputError(f"{p}: float image values must lie in [0, 1]")
-    return check_image(str(p), img)
+            raise InputError(f"{name}: float image values must lie in [0, 1]")
+    return check_image(name, img)
 
 
 def to_uint8(image: NDArray[np.floating]) -> NDArray[np.uint8]:

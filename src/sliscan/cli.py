@@ -34,7 +34,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from sliscan import __version__, evaluate, patterns, photometry, sequences, simulate
+from sliscan import __version__, batch, evaluate, motion, patterns, photometry, sequences, simulate
 from sliscan._validate import InputError, atomic_path, read_image, write_image, write_images
 from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
                                calibrate_points, calibrate_target, target_residuals)
@@ -682,7 +682,9 @@ Examples:
   sliscan simulate --pattern cp.json --scene out/sphere --camera 640x480 --truth truth.npz -o capture.png
   sliscan simulate --pattern cp.json --scene out/sphere --calibration rig.json -o capture.png \\
       --projector-view pv.png --camera-view cv.png
-  sliscan simulate --pattern pmp/pmp.json --scene sphere --camera 640x480 -o cap/pmp.png   # cap/pmp_00.png ...""")
+  sliscan simulate --pattern pmp/pmp.json --scene sphere --camera 640x480 -o cap/pmp.png   # cap/pmp_00.png ...
+  sliscan simulate --pattern cp.json --scene sphere --motion 20 --velocity 3,0,-2 --spin 4 \\
+      --albedo checker --truth take/truth.npz -o take/frame.png          # take/frame_00.png ... + truths""")
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True, help="PatternSpec JSON of the pattern.")
 @click.option("--scene", default="sphere", show_default=True,
               help=f"{', '.join(SCENES)}, or the PREFIX of a mat5 scan (PREFIXX.byt ...).")
@@ -707,11 +709,20 @@ Examples:
 @click.option("--projector-view", type=OUTPUT_FILE,
               help="Save the thesis's projector view (chapter 5) of the scene's points.")
 @click.option("--camera-view", type=OUTPUT_FILE, help="Save the thesis's camera view (chapter 5).")
+@click.option("--motion", "motion_frames", type=click.IntRange(min=1),
+              help="A moving object: N frames of the scene's object (all but its planes) moving by --velocity "
+                   "and --spin each frame, centred on the nominal pose; OUT_00.png ... and, with --truth, "
+                   "TRUTH_00.npz ... one per frame.")
+@click.option("--velocity", type=FLOATS, default="3,0,0", show_default=True,
+              help="With --motion: translation per frame, mm (X right, Y down, Z away).")
+@click.option("--spin", type=float, default=4.0, show_default=True,
+              help="With --motion: rotation per frame about the vertical axis through the working point, degrees.")
 @_overwrite_option
 def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camera_matrix: Path | None,
                  projector_matrix: Path | None, camera: tuple[int, int] | None, write_rig: Path | None,
                  output: Path, truth: Path | None, projector_view: Path | None, camera_view: Path | None,
-                 overwrite: bool, **physics: Any) -> None:
+                 motion_frames: int | None, velocity: tuple[float, ...], spin: float, overwrite: bool,
+                 **physics: Any) -> None:
     """Render a camera capture of a pattern on a scene with the virtual rig.
 
     The rig is --calibration (or --camera-matrix/--projector-matrix) if given, else the
@@ -729,8 +740,18 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     multi = spec.kind in MULTI_FRAME_KINDS
     if multi and (projector_view is not None or camera_view is not None):
         raise click.UsageError("--projector-view and --camera-view need a single-image pattern, not a sequence")
-    outputs = sequences.indexed_paths(output, spec.frame_count) if multi else [output]
-    _check_outputs([*outputs, write_rig, truth, projector_view, camera_view],
+    if motion_frames is not None:
+        if multi or projector_view is not None or camera_view is not None:
+            raise click.UsageError("--motion renders a single-shot pattern, one capture per frame, without views")
+        if len(velocity) != 3:
+            raise click.UsageError(f"--velocity takes 3 numbers (mm per frame along X, Y, Z), got {len(velocity)}")
+        moving = motion.Motion(motion_frames, (velocity[0], velocity[1], velocity[2]), spin)
+        outputs = sequences.indexed_paths(output, motion_frames)
+        truths = [] if truth is None else sequences.indexed_paths(truth, motion_frames)
+    else:
+        outputs = sequences.indexed_paths(output, spec.frame_count) if multi else [output]
+        truths = [truth]
+    _check_outputs([*outputs, write_rig, *truths, projector_view, camera_view],
                    [pattern_path, calibration, camera_matrix, projector_matrix, *_mat5_files(mat5_prefix)],
                    overwrite=overwrite)
     calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=camera,
@@ -745,6 +766,9 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     surface, grid = _load_scene(scene, rig)
     conditions = _conditions(**physics)
     projected = None if multi else patterns.render_pattern(spec)
+    if motion_frames is not None:
+        return _simulate_motion(rig, surface, projected, moving, conditions, outputs=outputs, truths=truths,
+                                write_rig=write_rig, scene=scene)
     with _progress(2) as stage:
         stage("render")
         if projected is None:
@@ -775,6 +799,28 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     lit = float(np.mean(capture.truth.lit))
     what = f"{len(outputs)} {w}x{h} captures" if multi else f"{w}x{h} capture"
     click.echo(f"wrote {', '.join(written)}: {what} of the {scene} scene ({lit:.0%} of pixels lit)")
+
+
+def _simulate_motion(rig: simulate.Rig, surface: simulate.Surface, projected: NDArray[np.float32],
+                     moving: motion.Motion, conditions: simulate.Conditions, *, outputs: Sequence[Path],
+                     truths: Sequence[Path], write_rig: Path | None, scene: str) -> None:
+    """`sliscan simulate --motion`: render and write the frames (and truths) one at a time."""
+    if write_rig is not None:
+        rig.calibration.save(write_rig)
+    lit = []
+    with _progress(moving.frames) as stage:
+        frames = motion.render_motion(rig, surface, projected, moving, conditions)
+        for k, capture in enumerate(frames):
+            stage(f"frame {k + 1}/{moving.frames}")
+            write_image(outputs[k], capture.image)
+            if truths:
+                _save_truth(truths[k], capture.truth)
+            lit.append(float(np.mean(capture.truth.lit)))
+    written = [f"{outputs[0]} .. {outputs[-1]}", *([f"{truths[0]} .. {truths[-1]}"] if truths else []),
+               *([str(write_rig)] if write_rig is not None else [])]
+    w, h = rig.camera.size
+    click.echo(f"wrote {', '.join(written)}: {moving.frames} {w}x{h} captures of the moving {scene} scene "
+               f"({min(lit):.0%}-{max(lit):.0%} of pixels lit)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -819,6 +865,86 @@ def _read_frames(files: Sequence[Path]) -> list[NDArray[np.float32]]:
 
 
 
+#: The calibration options of `sliscan scan`: --calibration, --camera-matrix, --projector-matrix.
+CalibrationArgs = tuple[Path | None, Path | None, Path | None]
+
+
+def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationArgs, size: tuple[int, int] | None,
+                      capture: object) -> tuple[Calibration, str]:
+    """The calibration of a scan and how to name it, checked against the capture's ``(W, H)``
+    `size` (None: unknown) and the pattern's projector."""
+    calib = _load_calibration(*args, camera_size=size, projector_size=spec.projector_size)
+    if calib is None:
+        raise click.UsageError("give --calibration rig.json, or --camera-matrix and --projector-matrix")
+    source = _calibration_source(*args)
+    if size is not None and calib.camera.size != size:
+        (w, h), (cw, ch) = size, calib.camera.size
+        raise InputError(f"{capture}: the capture is {w}x{h} but the camera of {source} is {cw}x{ch}")
+    _check_projector(spec, pattern_path, calib, source)
+    return calib, source
+
+
+@contextlib.contextmanager
+def _frames_progress(total: int) -> Iterator[Callable[[dict[str, Any]], None]]:
+    """A progress bar over the frames of a batch (frames done, frames per second, failures),
+    on stderr and only on a terminal.  Yields ``done(row)``: call it with each summary row."""
+    console = Console(stderr=True)
+    progress = Progress(SpinnerColumn(), TextColumn("frames"), BarColumn(), MofNCompleteColumn(),
+                        TextColumn("{task.fields[fps]:5.1f} frames/s  {task.fields[failed]} failed"),
+                        TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal)
+    task = progress.add_task("frames", total=total or None, fps=0.0, failed=0)
+    t0 = time.perf_counter()
+    failed = 0
+
+    def done(row: dict[str, Any]) -> None:
+        nonlocal failed
+        failed += row["status"] == "failed"
+        progress.advance(task)
+        elapsed = time.perf_counter() - t0
+        completed = progress.tasks[0].completed
+        progress.update(task, fps=completed / elapsed if elapsed > 0 else 0.0, failed=failed)
+
+    with progress:
+        yield done
+
+
+def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, calibration: CalibrationArgs, *,
+                method: str, out: Path | None, formats: Sequence[str], workers: int | None, scheduler: str | None,
+                resume: bool, overwrite: bool) -> int:
+    """`sliscan scan` of a batch of single-shot frames (`sliscan.batch`); returns the exit status."""
+    if out is None:
+        raise click.UsageError("several single-shot frames (or a video) are a batch: give --out DIR")
+    if resume and overwrite:
+        raise click.UsageError("--resume keeps the outputs in --out, --overwrite replaces them: give one")
+    if workers is not None and scheduler is not None:
+        raise click.UsageError("--workers sizes a local cluster; a --scheduler cluster has its own workers")
+    inputs = {Path(os.path.realpath(p)) for p in [*files, pattern_path, *calibration] if p is not None}
+    if Path(os.path.realpath(out)) in inputs:
+        raise InputError(f"--out {out}: is an input")
+    earlier = out.is_dir() and any(out.glob("frame_*")) or (out / batch.SUMMARY_JSON).exists()
+    if earlier and not (resume or overwrite):
+        raise InputError(f"--out {out}: holds the outputs of an earlier batch (use --resume or --overwrite)")
+    calib, source = _scan_calibration(spec, pattern_path, calibration, batch.first_frame_size(files)
+                                      if calibration[0] is None else None, files[0])
+    with _about(source):
+        job = batch.Job.create(spec, calib, method=method, formats=formats)
+    total = batch.count_frames(files)
+    skip = (lambda index: batch.outputs_exist(out, index, job.formats)) if resume else (lambda index: False)
+    with _frames_progress(total) as done, batch.dask_client(workers=workers, scheduler=scheduler) as client:
+        report = batch.run_batch(client, job, batch.iter_frames(files, skip), out, resume=resume, on_frame=done)
+    ok, failed, skipped = (report.count(s) for s in ("ok", "failed", "skipped"))
+    counts = ", ".join([f"{ok} frames scanned", *([f"{failed} failed"] if failed else []),
+                        *([f"{skipped} already done"] if skipped else [])])
+    click.echo(f"{counts} in {report.seconds:.1f} s ({report.frames_per_second:.2f} frames/s); "
+               f"wrote {out}/frame_* and {out / batch.SUMMARY_CSV}")
+    if failed:
+        first = next(r for r in report.rows if r["status"] == "failed")
+        click.echo(f"error: {failed} of {len(report.rows)} frames failed (see {out / batch.SUMMARY_CSV}); "
+                   f"the first: {first['error']}", err=True)
+        return 1
+    return 0
+
+
 @cli.command(epilog="""\b
 Examples:
   sliscan scan capture.png --pattern cp.json --calibration rig.json --mat5 out/sphere --ply sphere.ply
@@ -827,7 +953,13 @@ Examples:
   sliscan scan capture.png --pattern cp.json --calibration rig.json --timings             # ms per stage
   sliscan scan cap/ --pattern pmp/pmp.json --calibration rig.json --ply sphere.ply        # a folder
   sliscan scan 'cap/pmp_*.png' --pattern pmp/pmp.json --calibration rig.json --npz s.npz  # a glob
-  sliscan scan gc_00.png gc_01.png ... gc_41.png --pattern gc.json --calibration rig.json --ply s.ply""")
+  sliscan scan gc_00.png gc_01.png ... gc_41.png --pattern gc.json --calibration rig.json --ply s.ply
+\b
+Batches of single-shot frames (one output per frame, named by frame index, and a summary):
+  sliscan scan video/ --pattern cp.json --calibration rig.json --out scans --format ply --format npz
+  sliscan scan take.avi --pattern cp.json --calibration rig.json --out scans --workers 2
+  sliscan scan take.avi --pattern cp.json --calibration rig.json --out scans --resume
+  sliscan scan 'cap/*.png' --pattern cp.json --calibration rig.json --out scans --scheduler tcp://head:8786""")
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
               help="PatternSpec JSON of the projected pattern.")
@@ -839,12 +971,24 @@ Examples:
 @click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
               help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
 @click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Batch: scan every single-shot frame (image files, videos) into this folder: "
+                   "frame_000000.npz ..., summary.csv and summary.json.")
+@click.option("--format", "formats", type=click.Choice(batch.FORMATS), multiple=True,
+              help="Batch: output format(s) of each frame (repeat the option for several)  [default: npz]")
+@click.option("--workers", type=click.IntRange(min=1),
+              help="Batch: local Dask worker processes [default: this machine's CPUs].")
+@click.option("--scheduler", metavar="tcp://HOST:PORT",
+              help="Batch: run on this Dask distributed cluster instead of a local one.")
+@click.option("--resume", is_flag=True, help="Batch: skip the frames whose outputs are all in --out.")
 @_overwrite_option
 def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str, timings: bool, overwrite: bool) -> None:
+         method: str, timings: bool, out_dir: Path | None, formats: tuple[str, ...], workers: int | None,
+         scheduler: str | None, resume: bool, overwrite: bool) -> int:
     """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
-    frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them.
+    frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them, or a
+    batch of single-shot frames.
 
     CAPTURES are image files, folders (their image files, sorted by name) or quoted globs
     (sorted by name), taken in the order given: name frames with zero-padded numbers.  Every
@@ -852,28 +996,37 @@ def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | Non
     pair takes its sizes from the capture and the pattern.  Writes exactly the outputs asked
     for (creating their folders) and prints the number of points, the completeness of the frame
     and the seconds per stage.
+
+    \b
+    A single-shot pattern with several frames, a video file or --out is a batch: every frame
+    (of every video, read frame by frame) becomes frame_NNNNNN.{npz,ply} or frame_NNNNNN_{X,Y,Z}
+    .byt... in --out, scanned on a Dask cluster (local worker processes, or --scheduler).  A
+    frame that fails is recorded in summary.csv/summary.json and the others go on.  Exit
+    status 0 when every frame succeeded, 1 when some failed.
     """
     files = _capture_files(captures)
+    spec = PatternSpec.load(pattern_path)
+    batch_options = out_dir is not None or formats or workers is not None or scheduler is not None or resume
+    if spec.kind not in MULTI_FRAME_KINDS and (len(files) > 1 or batch_options or batch.is_video(files[0])):
+        if mat5_prefix is not None or ply is not None or npz is not None or timings:
+            raise click.UsageError("a batch writes into --out DIR in the --format(s) asked for; "
+                                   "--mat5, --ply, --npz and --timings are for one capture")
+        return _scan_batch(files, spec, pattern_path, (calibration, camera_matrix, projector_matrix),
+                           method=method, out=out_dir, formats=formats or ("npz",), workers=workers,
+                           scheduler=scheduler, resume=resume, overwrite=overwrite)
+    if batch_options:
+        raise click.UsageError("--out, --format, --workers, --scheduler and --resume are for batches of "
+                               "single-shot frames")
     _check_outputs([*_mat5_files(mat5_prefix), ply, npz], [*files, pattern_path, calibration, camera_matrix,
                                                              projector_matrix], overwrite=overwrite)
     with _progress(3) as stage:
         stage("read")
         t0 = time.perf_counter()
-        spec = PatternSpec.load(pattern_path)
-        if spec.kind not in MULTI_FRAME_KINDS and len(files) != 1:
-            raise InputError(f"{pattern_path}: a {spec.kind} pattern takes one capture, got {len(files)}")
         frames = _read_frames(files)
         capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
         h, w = frames[0].shape
-        calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=(w, h),
-                                  projector_size=spec.projector_size)
-        if calib is None:
-            raise click.UsageError("give --calibration rig.json, or --camera-matrix and --projector-matrix")
-        source = _calibration_source(calibration, camera_matrix, projector_matrix)
-        if calib.camera.size != (w, h):
-            cw, ch = calib.camera.size
-            raise InputError(f"{capture}: the capture is {w}x{h} but the camera of {source} is {cw}x{ch}")
-        _check_projector(spec, pattern_path, calib, source)
+        calib, source = _scan_calibration(spec, pattern_path, (calibration, camera_matrix, projector_matrix),
+                                          (w, h), capture)
         with _about(source):
             scanner = Scanner(spec, calib, method=method)
         stage("scan")

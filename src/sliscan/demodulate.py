@@ -108,9 +108,21 @@ class Demodulated:
     noise: NDArray[np.float32] | None = None
 
 
-def default_workers() -> int:
-    """Threads for the parallel stages: the CPUs this process may run on."""
+#: Environment variable capping the threads of the parallel stages (set by `sliscan.batch` in
+#: each worker process, so that worker processes sharing a machine do not oversubscribe it).
+THREADS_ENV = "SLISCAN_THREADS"
+
+
+def available_cpus() -> int:
+    """The CPUs this process may run on."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def default_workers() -> int:
+    """Threads for the parallel stages: ``$SLISCAN_THREADS`` if set (a positive integer), else
+    the CPUs this process may run on."""
+    cap = os.environ.get(THREADS_ENV, "")
+    return int(cap) if cap.isdigit() and int(cap) > 0 else available_cpus()
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
