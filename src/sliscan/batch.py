@@ -477,10 +477,12 @@ def run_batch(client: Any, job: Job, frames: Iterable[Frame], out: Path, *, resu
 
 
 @contextlib.contextmanager
-def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
+def dask_client(*, workers: int | None = None, scheduler: str | None = None,
+                threads: int | None = None) -> Iterator[Any]:
     """A Dask client: of the cluster at `scheduler` (``tcp://HOST:PORT``), or of a new local
-    cluster of `workers` single-threaded processes (default: the CPUs of this machine), whose
-    parallel stages then share the CPUs among the workers."""
+    cluster of `workers` processes (default: the CPUs of this machine), each scanning one frame
+    at a time with `threads` threads in its parallel stages (default: the CPUs shared among the
+    workers)."""
     import logging
 
     from distributed import Client, LocalCluster
@@ -490,7 +492,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
             yield client
         return
     n = workers or available_cpus()
-    threads = max(1, available_cpus() // n)
+    threads = threads or max(1, available_cpus() // n)
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                       silence_logs=logging.ERROR, env={THREADS_ENV: str(threads)}) as cluster, \
             Client(cluster) as client:
