@@ -76,6 +76,8 @@ class Cloud:
         What `depth` is (for the colour bar).
     eye, up : (3,) float64 arrays
         Initial viewing direction (from the scene's centre towards the eye) and up vector.
+    isolated : int
+        Points of the decimated grid in no triangle (a mesh does not draw them).
     """
 
     vertices: NDArray[np.float32]
@@ -87,6 +89,7 @@ class Cloud:
     depth_label: str
     eye: NDArray[np.float64]
     up: NDArray[np.float64]
+    isolated: int = 0
 
     def describe(self) -> str:
         """One sentence saying what is shown out of what."""
@@ -96,7 +99,9 @@ class Cloud:
             every = "" if columns == 1 else f", every {columns} points"
             return f"{kept:,} of the scan's {self.total:,} points{every}"
         every = "" if (rows, columns) == (1, 1) else f", one pixel per {rows}x{columns} block (rows x columns)"
-        return f"a mesh of {len(self.faces):,} triangles on {kept:,} of the scan's {self.total:,} points{every}"
+        alone = f" ({self.isolated:,} isolated points of that grid are in no triangle)" if self.isolated else ""
+        return (f"a mesh of {len(self.faces):,} triangles on {kept:,} of the scan's {self.total:,} points{every}"
+                f"{alone}")
 
 
 def grid_strides(valid: NDArray[np.bool_], budget: int) -> tuple[int, int]:
@@ -104,7 +109,7 @@ def grid_strides(valid: NDArray[np.bool_], budget: int) -> tuple[int, int]:
     at most `budget` pixels; the two differ by at most one (1x1, 1x2, 2x2, 2x3, 3x3, ...).
 
     >>> grid_strides(np.ones((1944, 2592), bool), 150_000)
-    (5, 6)
+    (6, 6)
     """
     if budget < 1:
         raise InputError(f"the point budget must be at least 1, got {budget}")
@@ -211,7 +216,8 @@ def cloud_from_grid(points: NDArray[np.floating], valid: NDArray[np.bool_], *,
     valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(points), axis=-1)
     rows, columns = grid_strides(valid, budget)
     sub = np.ascontiguousarray(points[::rows, ::columns], dtype=np.float32)
-    faces, used = grid_faces(sub, valid[::rows, ::columns])
+    sub_valid = valid[::rows, ::columns]
+    faces, used = grid_faces(sub, sub_valid)
     vertices = sub.reshape(-1, 3)[used]
     if calibration is not None:
         depth, label, (eye, up) = camera_depth(vertices, calibration), "depth (mm)", camera_pose(calibration)
@@ -220,7 +226,7 @@ def cloud_from_grid(points: NDArray[np.floating], valid: NDArray[np.bool_], *,
         eye, up = pose_from_points(vertices) if len(vertices) else (np.array([0.0, 0.0, -1.0]), np.array([0.0, -1.0, 0.0]))
     grey = None if texture is None else _grey(np.asarray(texture)[::rows, ::columns].ravel()[used])
     return Cloud(vertices=vertices, faces=faces, depth=depth, texture=grey, total=int(valid.sum()), stride=(rows, columns),
-                 depth_label=label, eye=eye, up=up)
+                 depth_label=label, eye=eye, up=up, isolated=int(sub_valid.sum()) - len(used))
 
 
 def cloud_from_points(points: NDArray[np.floating], *, grey: NDArray[np.floating] | None = None,
