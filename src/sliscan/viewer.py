@@ -172,17 +172,25 @@ def camera_pose(calibration: Calibration) -> tuple[NDArray[np.float64], NDArray[
 
 
 def pose_from_points(points: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """A viewing direction for a cloud without a calibration: along its thinnest principal axis,
-    from the side of the world origin (a camera-centred frame's camera), world -Y up where it can."""
+    """A viewing direction for a cloud without a calibration, and world -Y as up where it can.
+
+    A cloud far from the world origin (more than twice its own size) was most likely measured
+    in a camera-centred frame (the virtual rig's, a board calibration's): it is viewed from the
+    origin.  Otherwise along its thinnest principal axis, from the origin's side.
+    """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    centre = p.mean(axis=0)
-    normal = np.linalg.svd(p[:: max(1, len(p) // 20_000)] - centre, full_matrices=False)[2][-1]
-    if normal @ (-centre) < 0:
-        normal = -normal
-    up = np.array([0.0, -1.0, 0.0]) - normal * -normal[1]
+    centre = np.median(p, axis=0)
+    sample = p[:: max(1, len(p) // 20_000)] - centre
+    size = float(np.sqrt(np.median(np.sum(sample**2, axis=1))))
+    if np.linalg.norm(centre) > 2 * size:
+        towards = -centre / np.linalg.norm(centre)
+    else:
+        towards = np.linalg.svd(sample, full_matrices=False)[2][-1]
+        towards = -towards if towards @ (-centre) < 0 else towards
+    up = np.array([0.0, -1.0, 0.0]) - towards * -towards[1]
     if np.linalg.norm(up) < 1e-6:
         up = np.array([0.0, 0.0, 1.0])
-    return normal, up / np.linalg.norm(up)
+    return towards, up / np.linalg.norm(up)
 
 
 def camera_depth(points: NDArray[np.floating], calibration: Calibration) -> NDArray[np.float32]:
@@ -310,7 +318,7 @@ def _trace(cloud: Cloud) -> Any:
     colorbar = {"title": {"text": cloud.depth_label}, "len": 0.75}
     if cloud.faces is None:
         return go.Scatter3d(x=x, y=y, z=z, mode="markers", hoverinfo="x+y+z",
-                            marker={"size": 1.5, "color": cloud.depth, "colorscale": "Viridis", "colorbar": colorbar})
+                            marker={"size": 1.2, "color": cloud.depth, "colorscale": "Viridis", "colorbar": colorbar})
     i, j, k = (np.ascontiguousarray(cloud.faces[:, n]) for n in range(3))
     return go.Mesh3d(x=x, y=y, z=z, i=i, j=j, k=k, intensity=cloud.depth, colorscale="Viridis", colorbar=colorbar,
                      hoverinfo="x+y+z", flatshading=False,
@@ -324,9 +332,10 @@ def view_div(cloud: Cloud, *, div_id: str = "view3d", height_px: int = 640) -> s
     gets ``data-rendered="1"`` (tests and benchmarks wait for it).
     """
     go = require_plotly()
-    # From the camera's side, turned a little to the right and up, so the relief shows at once.
-    turned = cloud.eye + 0.3 * np.cross(cloud.up, cloud.eye) + 0.2 * cloud.up
-    eye = 2.2 * turned / np.linalg.norm(turned)
+    # From the camera's side, turned a little sideways and down (away from a projector above the
+    # camera, which sees its own stripe planes edge-on), so the relief shows at once.
+    turned = cloud.eye + 0.35 * np.cross(cloud.up, cloud.eye) - 0.25 * cloud.up
+    eye = 1.9 * turned / np.linalg.norm(turned)
     layout = {
         "template": "plotly_white", "height": height_px, "margin": {"l": 0, "r": 0, "t": 0, "b": 0},
         "scene": {"aspectmode": "data", "xaxis": {"title": {"text": "Xw (mm)"}},
