@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import csv
+import dataclasses
 import datetime
 import html
 import io
@@ -30,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sliscan import __version__, evaluate, figures, graycode, patterns, pmp, viewer
-from sliscan._validate import InputError, atomic_write_text
+from sliscan._validate import InputError, atomic_write_text, check_image
 from sliscan.calibrate import Residuals
 from sliscan.demodulate import along_carriers, bandpass_filters, line_spectrum
 from sliscan.figures import Panel
@@ -143,8 +144,9 @@ class ScanReport:
 
     Attributes
     ----------
-    frames : (K, H, W) float32 array
-        The capture: one frame for a composite pattern, the sequence for ``pmp``/``graycode``.
+    frames : (K, H, W) array
+        The capture: one frame for a composite pattern, the sequence for ``pmp``/``graycode``;
+        uint8, uint16 or float in [0, 1].
     spec : PatternSpec
     calibration : Calibration
     result : ScanResult
@@ -162,7 +164,7 @@ class ScanReport:
         Most vertices of the 3D view (`sliscan.viewer.cloud_from_grid`).
     """
 
-    frames: NDArray[np.float32]
+    frames: NDArray
     spec: PatternSpec
     calibration: Calibration
     result: ScanResult
@@ -399,6 +401,8 @@ def _format_figure(name: str, value: float) -> str:
 
 def scan_page(report: ScanReport) -> str:
     """The whole HTML page of a scan report."""
+    report = dataclasses.replace(report, frames=np.stack([check_image(f"frame {k}", frame)
+                                                          for k, frame in enumerate(report.frames)]))
     spec, result = report.spec, report.result
     h, w = result.shape
     n = int(result.valid.sum())
