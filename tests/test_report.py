@@ -16,7 +16,7 @@ from sliscan.calibrate import Residuals, calibrate_points, target_residuals
 from sliscan.formats import premat5
 from sliscan.pipeline import Scanner
 from sliscan.types import Calibration, PatternSpec
-from test_cli import listing, ok, sliscan
+from test_cli import fails_cleanly, ok, sliscan
 
 pytest.importorskip("plotly")
 pytest.importorskip("matplotlib")
@@ -306,14 +306,7 @@ def test_bad_input_is_one_line_and_writes_nothing(run: Path, tmp_path: Path, cas
     import cv2
 
     cv2.imwrite(str(folder / "flat.png"), flat)
-    before = listing(folder)
-    args, name = BAD_CASES[case]
-    result = sliscan(*args, cwd=folder)
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: ") and name in lines[0], result.stderr
-    assert result.stdout == ""
-    assert listing(folder) == before
+    fails_cleanly(*BAD_CASES[case], folder)
 
 
 @pytest.mark.parametrize("command", [["report"], ["view"]])
