@@ -263,7 +263,7 @@ def test_report_command_batch_and_calibration(run: Path, tmp_path: Path, rng: np
     premat5.write_g(tmp_path / "G.byt", rows)
     ok("calibrate", "G.byt", "--camera-size", "640x480", "--projector", "1024x768", "-o", "rig-g.json", cwd=tmp_path)
     result = ok("report", "--calibration", "rig-g.json", "--g-file", "G.byt", "-o", "c.html", cwd=tmp_path)
-    assert "calibration report of 1 views" in result.stdout
+    assert "calibration report of 1 view in" in result.stdout
     assert figure_ids((tmp_path / "c.html").read_text()) == {"residuals"}
 
 

@@ -43,7 +43,7 @@ def test_a_5_mp_scan_fits_the_budget_and_the_page_stays_under_30_mb() -> None:
     kept = -(-FIVE_MP[0] // rows) * -(-FIVE_MP[1] // columns)
     assert 0.5 * viewer.MESH_BUDGET < kept <= viewer.MESH_BUDGET
     # plotly.js inline + the stage figures (their pixel sizes do not grow with the camera:
-    # maps are reduced to figures.MAX_MAP_SIDE; 3.7 MB measured at 2592x1944, README) + the mesh.
+    # maps are reduced to figures.MAX_MAP_SIDE; 1.8 MB measured at 2592x1944, README) + the mesh.
     from plotly.offline import get_plotlyjs
 
     figures_bound = 8e6

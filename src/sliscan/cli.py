@@ -1362,7 +1362,8 @@ def report(captures: tuple[Path, ...], pattern_path: Path | None, calibration: P
         source = str(residuals if residuals is not None else g_file)
         page = report_module.calibration_page(calib, res, facts={"calibration": str(calibration), "residuals": source})
         report_module.write_page(output, page)
-        click.echo(f"wrote {output}: calibration report of {len(res.labels)} views in {time.perf_counter() - t0:.1f} s")
+        views = f"{len(res.labels)} view{'s' if len(res.labels) != 1 else ''}"
+        click.echo(f"wrote {output}: calibration report of {views} in {time.perf_counter() - t0:.1f} s")
         return
     if pattern_path is None:
         raise click.UsageError("a scan report needs --pattern P.json")

@@ -96,7 +96,7 @@ class Cloud:
         kept = len(self.vertices)
         rows, columns = self.stride
         if self.faces is None:
-            every = "" if columns == 1 else f", every {columns} points"
+            every = "" if columns == 1 else f", one point in every {columns}"
             return f"{kept:,} of the scan's {self.total:,} points{every}"
         every = "" if (rows, columns) == (1, 1) else f", one pixel per {rows}x{columns} block (rows x columns)"
         alone = f" ({self.isolated:,} isolated points of that grid are in no triangle)" if self.isolated else ""
