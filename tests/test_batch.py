@@ -258,3 +258,16 @@ def test_scan_frame_never_raises_and_reuses_its_scanner(take: Path) -> None:
     small = cv2.imencode(".png", np.full((48, 64), 128, np.uint8))[1].tobytes()
     wrong = batch.scan_frame(job, batch.Frame(3, "small", small))
     assert wrong.status == "failed" and "640" in wrong.error
+
+
+def test_batch_report_lists_every_frame(take: Path) -> None:
+    """scan --out ... --report writes the batch's HTML page: every frame, failures with their error."""
+    pytest.importorskip("plotly")
+    (take / "pair").mkdir(exist_ok=True)
+    for k in (0, BAD):
+        (take / f"pair/f{k:02d}.png").write_bytes((take / f"frames/f{k:02d}.png").read_bytes())
+    result = sliscan("scan", "pair", "--pattern", "cp.json", "--calibration", "rig.json", "--out", "pair-out",
+                     "--workers", "1", "--report", "pair.html", cwd=take)
+    assert result.returncode == 1 and "pair.html" in result.stdout, result.stderr
+    page = (take / "pair.html").read_text()
+    assert "pair/f00.png" in page and "pair/f10.png: not an image (cannot decode)" in page

@@ -273,8 +273,13 @@ BAD_CASES: dict[str, tuple[tuple[str, ...], str]] = {
 def test_bad_input_is_one_line_and_writes_nothing(bad_inputs: Path, tmp_path: Path, case: str) -> None:
     folder = tmp_path / "run"
     shutil.copytree(bad_inputs, folder)
+    fails_cleanly(*BAD_CASES[case], folder)
+
+
+def fails_cleanly(args: tuple[str, ...], name: str, folder: Path) -> None:
+    """Run a command on bad input in `folder`: it must exit with status 2 and one line ``error:
+    ...`` naming `name` on stderr, print nothing on stdout, and leave `folder` as it was."""
     before = listing(folder)
-    args, name = BAD_CASES[case]
     result = sliscan(*args, cwd=folder)
     assert result.returncode == 2, result.stderr
     lines = result.stderr.splitlines()

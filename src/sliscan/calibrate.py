@@ -40,8 +40,11 @@ References
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal, overload
 
 import cv2
@@ -50,11 +53,11 @@ import scipy.optimize
 import scipy.spatial
 from numpy.typing import ArrayLike, NDArray
 
-from sliscan._validate import InputError, check_finite_matrix
+from sliscan._validate import InputError, atomic_write_text, check_finite_matrix
 from sliscan.formats.premat5 import check_g, phase_to_pixel, pixel_to_phase
 from sliscan.pmp import ProjectorMap
 from sliscan.targets import CircleTarget, corner_spacing, detect_chessboard, detect_circles, projector_points
-from sliscan.types import Calibration, Device
+from sliscan.types import Calibration, Device, _load_json
 
 #: Fewest points for a DLT: 11 unknowns, 2 equations per point.
 MIN_POINTS = 6
@@ -640,6 +643,44 @@ class Residuals:
     def rms(self, device: str) -> list[float]:
         """Per-view RMS residual length (px) of ``"camera"`` or ``"projector"``."""
         return [_vector_rms(v) for v in getattr(self, device)]
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write as JSON (atomically): ``{"labels": [...], "points": "corner", "camera": [view
+        [[dx, dy], ...], ...], "projector": [...]}``, for ``sliscan report --residuals``."""
+        data = {"labels": list(self.labels), "points": self.points,
+                **{d: [np.asarray(v, dtype=np.float64).reshape(-1, 2).tolist() for v in getattr(self, d)]
+                   for d in ("camera", "projector")}}
+        return atomic_write_text(path, json.dumps(data) + "\n")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Residuals:
+        """Read what `save` wrote.
+
+        Raises
+        ------
+        InputError
+            If the file is not such JSON: the labels, a list of per-view ``(N, 2)`` finite
+            residuals per device, one per label.
+        """
+        d = _load_json(path)
+        labels, points = d.get("labels"), d.get("points", "point")
+        if not isinstance(labels, list) or not labels or not all(isinstance(x, str) for x in labels):
+            raise InputError(f"{path}: 'labels' must be a non-empty list of view names")
+        if not isinstance(points, str):
+            raise InputError(f"{path}: 'points' must be a string (corner, circle, ...)")
+        devices = []
+        for device in ("camera", "projector"):
+            views = d.get(device)
+            if not isinstance(views, list) or len(views) != len(labels):
+                raise InputError(f"{path}: '{device}' must list one view of residuals per label ({len(labels)})")
+            try:
+                arrays = tuple(np.asarray(v, dtype=np.float64).reshape(-1, 2) for v in views)
+            except (TypeError, ValueError):
+                raise InputError(f"{path}: '{device}' residuals must be lists of [dx, dy] numbers") from None
+            if not all(np.all(np.isfinite(a)) and a.size for a in arrays):
+                raise InputError(f"{path}: '{device}' residuals must be non-empty and finite")
+            devices.append(arrays)
+        return cls(tuple(labels), devices[0], devices[1], points)
 
 
 def _view_residuals(objects: list[NDArray[np.float32]], images: list[NDArray[np.float32]],

@@ -2,7 +2,8 @@
 
 Commands: ``pattern`` (``composite``, ``carrier-only``, ``modified``, ``pmp``, ``graycode``),
 ``simulate``, ``scan``, ``calibrate`` (from a G file), ``calibrate-target`` and ``calibrate-board``
-(from captured calibration sequences) and ``demo``.  Every command
+(from captured calibration sequences), ``report`` and ``view`` (HTML pages, issue 10) and ``demo``.
+Every command
 
 * checks its output paths first: none may be one of its input files or another of its outputs,
   and none may exist unless ``--overwrite`` is given (``demo`` alone replaces its own files);
@@ -34,14 +35,16 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from sliscan import __version__, batch, evaluate, motion, patterns, photometry, sequences, simulate
+from sliscan import __version__, batch, evaluate, motion, patterns, photometry, sequences, simulate, viewer
+from sliscan import report as report_module
 from sliscan._validate import InputError, atomic_path, read_image, write_image, write_images
 from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
                                calibrate_points, calibrate_target, target_residuals)
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
-from sliscan.pipeline import Scanner
+from sliscan.pipeline import Scanner, ScanStages
+from sliscan.report import require_report
 from sliscan.targets import CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
 
@@ -864,6 +867,54 @@ def _read_frames(files: Sequence[Path]) -> list[NDArray[np.float32]]:
     return frames
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class _ScanInputs:
+    """A scan's checked inputs: the capture files, frames and pattern, the calibration and a scanner."""
+
+    files: list[Path]
+    frames: list[NDArray[np.float32]]
+    capture: str
+    pattern_path: Path
+    spec: PatternSpec
+    calib: Calibration
+    source: str
+    scanner: Scanner
+
+
+def _scan_inputs(files: list[Path], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
+                 projector_matrix: Path | None, *, method: str, spec: PatternSpec | None = None) -> _ScanInputs:
+    """Read and check what `sliscan scan` and `sliscan report` scan: the pattern (`spec` if
+    already read), the frames (one for a composite pattern), the calibration (its camera of the
+    frames' size, its projector the pattern's), and build the scanner."""
+    spec = PatternSpec.load(pattern_path) if spec is None else spec
+    if spec.kind not in MULTI_FRAME_KINDS and len(files) != 1:
+        raise InputError(f"{pattern_path}: a {spec.kind} pattern takes one capture, got {len(files)}")
+    frames = _read_frames(files)
+    capture = str(files[0]) if len(files) == 1 else f"{files[0]} .. {files[-1]}"
+    h, w = frames[0].shape
+    calib, source = _scan_calibration(spec, pattern_path, (calibration, camera_matrix, projector_matrix), (w, h),
+                                      capture)
+    with _about(source):
+        scanner = Scanner(spec, calib, method=method)
+    return _ScanInputs(files, frames, capture, pattern_path, spec, calib, source, scanner)
+
+
+def _write_scan_report(path: Path, inputs: _ScanInputs, result: ScanResult, stages: ScanStages,
+                       timings: dict[str, float], *, truth: simulate.GroundTruth | None = None,
+                       max_points: int = viewer.MESH_BUDGET) -> None:
+    """Write the HTML report of a scan (`sliscan.report.scan_page`)."""
+    spec = inputs.spec
+    pattern = (f"{spec.kind}, {sequences.describe_frames(spec)}" if spec.kind in MULTI_FRAME_KINDS
+               else _describe(spec))
+    facts = {"capture": inputs.capture, "pattern": f"{inputs.pattern_path}: {pattern}", "calibration": inputs.source}
+    if spec.kind not in MULTI_FRAME_KINDS:
+        facts["demodulator"] = inputs.scanner.method
+    frames = np.stack(inputs.frames)
+    page = report_module.scan_page(report_module.ScanReport(
+        frames=frames, spec=spec, calibration=inputs.calib, result=result, stages=stages,
+        method=inputs.scanner.method, truth=truth, timings=timings, facts=facts, max_points=max_points))
+    report_module.write_page(path, page)
+
 
 #: The calibration options of `sliscan scan`: --calibration, --camera-matrix, --projector-matrix.
 CalibrationArgs = tuple[Path | None, Path | None, Path | None]
@@ -910,8 +961,9 @@ def _frames_progress(total: int) -> Iterator[Callable[[dict[str, Any]], None]]:
 
 def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, calibration: CalibrationArgs, *,
                 method: str, out: Path | None, formats: Sequence[str], workers: int | None, scheduler: str | None,
-                resume: bool, overwrite: bool) -> int:
-    """`sliscan scan` of a batch of single-shot frames (`sliscan.batch`); returns the exit status."""
+                resume: bool, report: Path | None, overwrite: bool) -> int:
+    """`sliscan scan` of a batch of single-shot frames (`sliscan.batch`), with its HTML `report`
+    if asked; returns the exit status."""
     if out is None:
         raise click.UsageError("several single-shot frames (or a video) are a batch: give --out DIR")
     if resume and overwrite:
@@ -924,6 +976,9 @@ def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, ca
     earlier = out.is_dir() and any(out.glob("frame_*")) or (out / batch.SUMMARY_JSON).exists()
     if earlier and not (resume or overwrite):
         raise InputError(f"--out {out}: holds the outputs of an earlier batch (use --resume or --overwrite)")
+    if report is not None:
+        _check_outputs([report], [*files, pattern_path, *calibration], overwrite=overwrite)
+        require_report()
     calib, source = _scan_calibration(spec, pattern_path, calibration, batch.first_frame_size(files)
                                       if calibration[0] is None else None, files[0])
     with _about(source):
@@ -931,15 +986,21 @@ def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, ca
     total = batch.count_frames(files)
     skip = (lambda index: batch.outputs_exist(out, index, job.formats)) if resume else (lambda index: False)
     with _frames_progress(total) as done, batch.dask_client(workers=workers, scheduler=scheduler) as client:
-        report = batch.run_batch(client, job, batch.iter_frames(files, skip), out, resume=resume, on_frame=done)
-    ok, failed, skipped = (report.count(s) for s in ("ok", "failed", "skipped"))
+        totals = batch.run_batch(client, job, batch.iter_frames(files, skip), out, resume=resume, on_frame=done)
+    ok, failed, skipped = (totals.count(s) for s in ("ok", "failed", "skipped"))
+    written = [f"{out}/frame_*", str(out / batch.SUMMARY_CSV)]
+    if report is not None:
+        summary = out / batch.SUMMARY_JSON
+        rows = report_module.read_batch_summary(summary)
+        report_module.write_page(report, report_module.batch_page(rows, facts={"summary": str(summary)}))
+        written.append(str(report))
     counts = ", ".join([f"{ok} frames scanned", *([f"{failed} failed"] if failed else []),
                         *([f"{skipped} already done"] if skipped else [])])
-    click.echo(f"{counts} in {report.seconds:.1f} s ({report.frames_per_second:.2f} frames/s); "
-               f"wrote {out}/frame_* and {out / batch.SUMMARY_CSV}")
+    click.echo(f"{counts} in {totals.seconds:.1f} s ({totals.frames_per_second:.2f} frames/s); "
+               f"wrote {', '.join(written)}")
     if failed:
-        first = next(r for r in report.rows if r["status"] == "failed")
-        click.echo(f"error: {failed} of {len(report.rows)} frames failed (see {out / batch.SUMMARY_CSV}); "
+        first = next(r for r in totals.rows if r["status"] == "failed")
+        click.echo(f"error: {failed} of {len(totals.rows)} frames failed (see {out / batch.SUMMARY_CSV}); "
                    f"the first: {first['error']}", err=True)
         return 1
     return 0
@@ -951,6 +1012,7 @@ Examples:
   sliscan scan capture.png --pattern cp.json --camera-matrix cam.txt --projector-matrix proj.txt --npz scan.npz
   sliscan scan capture.png --pattern cp.json --calibration rig.json --method bandpass --ply sphere.ply
   sliscan scan capture.png --pattern cp.json --calibration rig.json --timings             # ms per stage
+  sliscan scan capture.png --pattern cp.json --calibration rig.json --ply s.ply --report scan.html
   sliscan scan cap/ --pattern pmp/pmp.json --calibration rig.json --ply sphere.ply        # a folder
   sliscan scan 'cap/pmp_*.png' --pattern pmp/pmp.json --calibration rig.json --npz s.npz  # a glob
   sliscan scan gc_00.png gc_01.png ... gc_41.png --pattern gc.json --calibration rig.json --ply s.ply
@@ -971,6 +1033,9 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
 @click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
               help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
 @click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
+@click.option("--report", type=OUTPUT_FILE,
+              help="Also write an HTML report of every stage with a 3D view (needs sliscan[report]; see sliscan report); "
+                   "of a batch: the per-frame table and plots.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Batch: scan every single-shot frame (image files, videos) into this folder: "
                    "frame_000000.npz ..., summary.csv and summary.json.")
@@ -984,8 +1049,8 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
 @_overwrite_option
 def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str, timings: bool, out_dir: Path | None, formats: tuple[str, ...], workers: int | None,
-         scheduler: str | None, resume: bool, overwrite: bool) -> int:
+         method: str, timings: bool, report: Path | None, out_dir: Path | None, formats: tuple[str, ...],
+         workers: int | None, scheduler: str | None, resume: bool, overwrite: bool) -> int:
     """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
     frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them, or a
     batch of single-shot frames.
@@ -1013,37 +1078,40 @@ def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | Non
                                    "--mat5, --ply, --npz and --timings are for one capture")
         return _scan_batch(files, spec, pattern_path, (calibration, camera_matrix, projector_matrix),
                            method=method, out=out_dir, formats=formats or ("npz",), workers=workers,
-                           scheduler=scheduler, resume=resume, overwrite=overwrite)
+                           scheduler=scheduler, resume=resume, report=report, overwrite=overwrite)
     if batch_options:
         raise click.UsageError("--out, --format, --workers, --scheduler and --resume are for batches of "
                                "single-shot frames")
-    _check_outputs([*_mat5_files(mat5_prefix), ply, npz], [*files, pattern_path, calibration, camera_matrix,
-                                                             projector_matrix], overwrite=overwrite)
-    with _progress(3) as stage:
+    _check_outputs([*_mat5_files(mat5_prefix), ply, npz, report], [*files, pattern_path, calibration, camera_matrix,
+                                                                     projector_matrix], overwrite=overwrite)
+    if report is not None:
+        require_report()
+    with _progress(3 + (report is not None)) as stage:
         stage("read")
         t0 = time.perf_counter()
-        frames = _read_frames(files)
-        capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
+        inputs = _scan_inputs(files, pattern_path, calibration, camera_matrix, projector_matrix, method=method,
+                              spec=spec)
+        frames, capture, scanner = inputs.frames, inputs.capture, inputs.scanner
         h, w = frames[0].shape
-        calib, source = _scan_calibration(spec, pattern_path, (calibration, camera_matrix, projector_matrix),
-                                          (w, h), capture)
-        with _about(source):
-            scanner = Scanner(spec, calib, method=method)
         stage("scan")
         t1 = time.perf_counter()
         with _about(capture, f"pattern {pattern_path}"):
-            result = scanner.scan(frames if spec.kind in MULTI_FRAME_KINDS else frames[0])
+            result, stages = scanner.scan_stages(frames if spec.kind in MULTI_FRAME_KINDS else frames[0])
         stage("write")
         t2 = time.perf_counter()
         written = _write_scan(result, mat5_prefix=mat5_prefix, ply=ply, npz=npz)
         t3 = time.perf_counter()
+        if report is not None:
+            stage("report")
+            _write_scan_report(report, inputs, result, stages, {"read": t1 - t0, **result.timings})
+            written.append(str(report))
     n = int(result.valid.sum())
     if n < LOW_YIELD * result.valid.size:
         click.echo(f"warning: {capture}: only {n / result.valid.size:.2%} of the frame decoded: check the focus, the "
                    f"exposure and that the object is in the projector's light", err=True)
     stages = {"read": t1 - t0, **{k: v for k, v in result.timings.items() if k != "total"}, "write": t3 - t2}
     times = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
-    wrote = f"wrote {', '.join(written)}" if written else "wrote nothing (give --mat5, --ply or --npz)"
+    wrote = f"wrote {', '.join(written)}" if written else "wrote nothing (give --mat5, --ply, --npz or --report)"
     click.echo(f"{n} points ({n / result.valid.size:.1%} of the {w}x{h} frame) in {t3 - t0:.2f} s "
                f"({times}); {wrote}")
     if timings:
@@ -1141,10 +1209,12 @@ perspective correction of the circle centres).""")
 @click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
 @click.option("--plot", type=OUTPUT_FILE,
               help="Also write a PNG of the camera and projector residuals per circle (needs sliscan[plot]).")
+@click.option("--residuals", "residuals_path", type=OUTPUT_FILE,
+              help="Also write every circle's residual vectors as JSON (for sliscan report --residuals).")
 @_overwrite_option
 def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_path: Path, method: str,
                          output: Path, g_file: Path | None, cam_txt: Path | None, proj_txt: Path | None,
-                         plot: Path | None, overwrite: bool) -> None:
+                         plot: Path | None, residuals_path: Path | None, overwrite: bool) -> None:
     """Calibrate camera and projector from one capture of a 3-D circle target (thesis 4.0-4.4).
 
     CAPTURES are the frames of the sequence (files, folders or quoted globs, in the order of
@@ -1153,7 +1223,7 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
     calibrated by the DLT.  Prints the reprojection residuals.
     """
     files = _capture_files(captures)
-    _check_outputs([output, g_file, cam_txt, proj_txt, plot], [*files, pattern_path, target_path],
+    _check_outputs([output, g_file, cam_txt, proj_txt, plot, residuals_path], [*files, pattern_path, target_path],
                    overwrite=overwrite)
     if plot is not None:
         require_matplotlib()
@@ -1179,10 +1249,13 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
         if path is not None:
             write_matrix_txt(path, device.matrix)
             written.append(str(path))
+    residuals = target_residuals(calib, rows, label=target_path.name)
     if plot is not None:
-        plot_residuals(plot, target_residuals(calib, rows, label=target_path.name),
-                       title=f"calibrate-target: {method} DLT, {len(rows)} circles")
+        plot_residuals(plot, residuals, title=f"calibrate-target: {method} DLT, {len(rows)} circles")
         written.append(str(plot))
+    if residuals_path is not None:
+        residuals.save(residuals_path)
+        written.append(str(residuals_path))
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} circles (perspective bias "
                f"{calib.extra['perspective_bias_px']:.2g} px corrected); reprojection {_residual_summary(calib)}")
 
@@ -1221,9 +1294,12 @@ inverse, then white and black).""")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
 @click.option("--plot", type=OUTPUT_FILE,
               help="Also write a PNG of the camera and projector residuals of each pose (needs sliscan[plot]).")
+@click.option("--residuals", "residuals_path", type=OUTPUT_FILE,
+              help="Also write every corner's residual vectors per pose as JSON (for sliscan report --residuals).")
 @_overwrite_option
 def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tuple[int, int], square: float,
-                        projector_distortion: bool, output: Path, plot: Path | None, overwrite: bool) -> None:
+                        projector_distortion: bool, output: Path, plot: Path | None, residuals_path: Path | None,
+                        overwrite: bool) -> None:
     """Calibrate camera and projector (intrinsics, lens distortion, pose) from chessboard poses.
 
     Per POSE: the board's inner corners are found in the white frame and each corner's projector
@@ -1236,7 +1312,7 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
     """
     spec = _sequence_spec(pattern_path)
     pose_files = {pose: _capture_files([pose]) for pose in poses}
-    _check_outputs([output, plot], [pattern_path, *(f for files in pose_files.values() for f in files)],
+    _check_outputs([output, plot, residuals_path], [pattern_path, *(f for files in pose_files.values() for f in files)],
                    overwrite=overwrite)
     if plot is not None:
         require_matplotlib()
@@ -1266,10 +1342,13 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
                                            projector_distortion=projector_distortion, with_residuals=True)
         calib.save(output)
     written = [str(output)]
+    residuals = Residuals(tuple(p.name for p in used), residuals.camera, residuals.projector, residuals.points)
     if plot is not None:
-        residuals = Residuals(tuple(p.name for p in used), residuals.camera, residuals.projector, residuals.points)
         plot_residuals(plot, residuals, title=f"calibrate-board: {len(views)} poses, {board[0]}x{board[1]} corners")
         written.append(str(plot))
+    if residuals_path is not None:
+        residuals.save(residuals_path)
+        written.append(str(residuals_path))
     Console().print(_board_table(calib, used))
     outliers = calib.extra["outlier_views"]
     flagged = f"; outlier poses: {', '.join(str(used[k]) for k in outliers)}" if outliers else ""
@@ -1363,6 +1442,155 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
     w, h = camera
     click.echo(f"wrote {out}/rig.json and {', '.join(f'{out}/{n}/' for n in specs)}: {w}x{h} sphere demo "
                f"in {time.perf_counter() - t0:.1f} s")
+
+
+# --------------------------------------------------------------------------------------------
+# sliscan report, sliscan view (issue 10)
+# --------------------------------------------------------------------------------------------
+
+
+def _calibration_residuals(calib: Calibration, calibration: Path, residuals: Path | None, g_file: Path | None,
+                           pixels: bool) -> Residuals:
+    """The residual vectors of a calibration: saved by calibrate-board/-target ``--residuals``,
+    or recomputed from the calibration grid (G file) a DLT was calibrated from."""
+    if residuals is not None:
+        return Residuals.load(residuals)
+    rows = premat5.read_g(g_file)
+    if pixels:  # the residuals take phases: x = phase * size / 2 pi
+        (w, h), rows = calib.projector.size, rows.copy()
+        rows[:, 5], rows[:, 6] = premat5.pixel_to_phase(rows[:, 5], w), premat5.pixel_to_phase(rows[:, 6], h)
+    with _about(g_file, calibration):
+        return target_residuals(calib, rows, label=g_file.name)
+
+
+@cli.command(epilog="""\b
+Examples:
+  sliscan report capture.png --pattern cp.json --calibration rig.json -o report.html
+  sliscan report capture.png --pattern cp.json --calibration rig.json --truth truth.npz -o report.html
+  sliscan report cap/ --pattern pmp/pmp.json --calibration rig.json -o pmp-report.html
+  sliscan report --calibration rig.json --residuals residuals.json -o calibration.html
+  sliscan report --calibration rig-g.json --g-file G.byt -o calibration.html
+  sliscan report --batch out/summary.json -o batch.html
+\b
+The page is one HTML file with every figure and plotly.js inside: it opens offline, in any
+browser (needs sliscan[report]).""")
+@click.argument("captures", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--pattern", "pattern_path", type=INPUT_FILE, help="PatternSpec JSON of the projected pattern.")
+@_calibration_options
+@click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
+              help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
+@click.option("--truth", type=INPUT_FILE,
+              help="Ground truth of a simulated capture (sliscan simulate --truth): adds the error against it.")
+@click.option("--residuals", type=INPUT_FILE,
+              help="With --calibration and no capture: a calibration report of these residuals "
+                   "(calibrate-board or calibrate-target --residuals).")
+@click.option("--g-file", type=INPUT_FILE,
+              help="With --calibration and no capture: a calibration report of the DLT's residuals on this grid.")
+@click.option("--pixels", is_flag=True, help="The G file's projector columns are pixels, not phases in radians.")
+@click.option("--batch", "batch_summary", type=INPUT_FILE,
+              help="A batch report instead: the per-frame summary (summary.json or .csv of a batch scan).")
+@click.option("--max-points", type=click.IntRange(min=1), default=viewer.MESH_BUDGET, show_default=True,
+              help="Most points of the 3D view (the scan is decimated by a grid stride to fit).")
+@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="HTML file to write.")
+@_overwrite_option
+def report(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None,
+           camera_matrix: Path | None, projector_matrix: Path | None, method: str, truth: Path | None,
+           residuals: Path | None, g_file: Path | None, pixels: bool, batch_summary: Path | None, max_points: int,
+           output: Path, overwrite: bool) -> None:
+    """Write one self-contained HTML report of a scan, a calibration or a batch.
+
+    A scan (CAPTURES with --pattern and a calibration, as for sliscan scan): the capture, its
+    spectrum with the carriers and pass bands, the envelopes and bit planes (or a sequence's
+    phase and bits), the decoded stripes and projector coordinate, the confidence and validity
+    masks, the depth map, an interactive 3D view, the time of each stage and, with --truth, the
+    error against the ground truth.  A calibration (--calibration with --residuals or --g-file):
+    the matrices and the residual plots per view.  A batch (--batch): the per-frame table and
+    the points and seconds per frame.
+    """
+    modes = [bool(captures), residuals is not None or g_file is not None, batch_summary is not None]
+    if sum(modes) != 1:
+        raise click.UsageError("give CAPTURES (a scan), --residuals or --g-file (a calibration), or --batch: one of them")
+    if residuals is not None and g_file is not None:
+        raise click.UsageError("give --residuals or --g-file, not both")
+    files = _capture_files(captures) if captures else []
+    _check_outputs([output], [*files, pattern_path, calibration, camera_matrix, projector_matrix, truth, residuals,
+                              g_file, batch_summary], overwrite=overwrite)
+    require_report()
+    t0 = time.perf_counter()
+    if batch_summary is not None:
+        rows = report_module.read_batch_summary(batch_summary)
+        report_module.write_page(output, report_module.batch_page(rows, facts={"summary": str(batch_summary)}))
+        click.echo(f"wrote {output}: batch report of {len(rows)} frames in {time.perf_counter() - t0:.1f} s")
+        return
+    if not captures:
+        if calibration is None:
+            raise click.UsageError("a calibration report needs --calibration rig.json")
+        calib = load_calibration(calibration)
+        res = _calibration_residuals(calib, calibration, residuals, g_file, pixels)
+        source = str(residuals if residuals is not None else g_file)
+        page = report_module.calibration_page(calib, res, facts={"calibration": str(calibration), "residuals": source})
+        report_module.write_page(output, page)
+        views = f"{len(res.labels)} view{'s' if len(res.labels) != 1 else ''}"
+        click.echo(f"wrote {output}: calibration report of {views} in {time.perf_counter() - t0:.1f} s")
+        return
+    if pattern_path is None:
+        raise click.UsageError("a scan report needs --pattern P.json")
+    with _progress(3) as stage:
+        stage("read")
+        inputs = _scan_inputs(files, pattern_path, calibration, camera_matrix, projector_matrix, method=method)
+        ground = None if truth is None else evaluate.read_truth(truth, shape=inputs.frames[0].shape)
+        t1 = time.perf_counter()
+        stage("scan")
+        frames = inputs.frames if inputs.spec.kind in MULTI_FRAME_KINDS else inputs.frames[0]
+        with _about(inputs.capture, f"pattern {pattern_path}"):
+            result, stages = inputs.scanner.scan_stages(frames)
+        stage("report")
+        t2 = time.perf_counter()
+        _write_scan_report(output, inputs, result, stages, {"read": t1 - t0, **result.timings}, truth=ground,
+                           max_points=max_points)
+    n = int(result.valid.sum())
+    click.echo(f"wrote {output}: scan report of {inputs.capture}, {n} points ({n / result.valid.size:.1%} of the "
+               f"frame){', with the error against ' + str(truth) if truth is not None else ''}; scan "
+               f"{t2 - t1:.1f} s, report {time.perf_counter() - t2:.1f} s")
+
+
+@cli.command(epilog="""\b
+Examples:
+  sliscan view sphere.ply                     # writes a temporary page and opens it
+  sliscan view scan.npz -o scan.html --no-open
+  sliscan view out/sphere -o sphere.html      # a mat5 prefix (out/sphereX.byt ...)""")
+@click.argument("scan_path", metavar="SCAN", type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=OUTPUT_FILE, help="HTML file to write [a new temporary folder's SCAN.html].")
+@click.option("--max-points", type=click.IntRange(min=1),
+              help=f"Most points shown [{viewer.MESH_BUDGET} for a mesh of an npz or mat5 scan, {viewer.POINT_BUDGET} "
+                   f"for a PLY point cloud].")
+@click.option("--open/--no-open", "open_page", default=True, show_default=True,
+              help="Open the page in the default web browser.")
+@_overwrite_option
+def view(scan_path: Path, output: Path | None, max_points: int | None, open_page: bool, overwrite: bool) -> None:
+    """Write (and open) an interactive 3D view of a scan: a PLY point cloud, a sliscan npz scan
+    or a mat5 prefix.
+
+    An npz or mat5 scan keeps its pixel grid and is shown as a mesh, coloured by Zw or by its
+    texture; a PLY file as points.  Large scans are decimated (every k-th row and column, or
+    point) to --max-points.  The page is one HTML file with plotly.js inside (needs
+    sliscan[report]).
+    """
+    inputs = [scan_path] if scan_path.suffix.lower() in (".ply", ".npz") else _mat5_files(scan_path)
+    _check_outputs([output], inputs, overwrite=overwrite)
+    require_report()
+    budgets = {} if max_points is None else {"mesh_budget": max_points, "point_budget": max_points}
+    cloud = viewer.load_cloud(scan_path, **budgets)
+    if output is None:
+        import tempfile
+
+        output = Path(tempfile.mkdtemp(prefix="sliscan-view-")) / f"{Path(scan_path).stem or 'scan'}.html"
+    report_module.write_page(output, report_module.view_page(cloud, str(scan_path)))
+    click.echo(f"wrote {output}: {cloud.describe()}")
+    if open_page:
+        import webbrowser
+
+        webbrowser.open(output.resolve().as_uri())
 
 
 # --------------------------------------------------------------------------------------------

@@ -17,12 +17,14 @@ The figures every accuracy claim in sliscan rests on:
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from sliscan._validate import InputError
 from sliscan.patterns import stripe_center, stripe_of_line
 from sliscan.reconstruct import triangulate
 from sliscan.simulate import Conditions, GroundTruth
@@ -63,6 +65,51 @@ def true_stripes(truth: GroundTruth, spec: PatternSpec) -> NDArray[np.int64]:
 def _errors(points: NDArray[np.floating], truth: GroundTruth, mask: NDArray[np.bool_]) -> NDArray[np.float64]:
     diff = points[mask].astype(np.float64) - truth.points[mask].astype(np.float64)
     return np.linalg.norm(diff, axis=-1)
+
+
+def error_map(result: ScanResult, truth: GroundTruth) -> NDArray[np.float32]:
+    """3D error (mm) of every valid point that lies on a true surface, NaN elsewhere: the
+    comparisons `surface_accuracy` takes its RMS, median and 95th percentile from.
+
+    Returns
+    -------
+    (H, W) float32 array
+        Distance between the scan's point and the true point of the pixel.
+    """
+    on_surface = result.valid & truth.surface
+    errors = np.full(on_surface.shape, np.nan, dtype=np.float32)
+    errors[on_surface] = _errors(result.points, truth, on_surface)
+    return errors
+
+
+#: The arrays of a ground-truth npz (``sliscan simulate --truth``) and their dtypes.
+TRUTH_DTYPES = {"points": np.float32, "proj": np.float32, "lit": np.bool_, "surface": np.bool_,
+                "albedo": np.float32, "edge": np.bool_}
+
+
+def read_truth(path: str | os.PathLike, *, shape: tuple[int, int] | None = None) -> GroundTruth:
+    """Read the ground truth written by ``sliscan simulate --truth`` (an npz of `GroundTruth`).
+
+    Parameters
+    ----------
+    path : path
+    shape : (H, W), optional
+        The camera's image shape the truth must have.
+
+    Raises
+    ------
+    InputError
+        If the file is not such an npz, or its arrays do not share one ``(H, W)`` (or `shape`).
+    """
+    from sliscan.formats.npz import read_npz_arrays
+
+    arrays = read_npz_arrays(path, TRUTH_DTYPES, what="a ground truth (sliscan simulate --truth)")
+    want = shape if shape is not None else arrays["lit"].shape
+    for name, arr in arrays.items():
+        expected = (*want, 3 if name == "points" else 2) if name in ("points", "proj") else tuple(want)
+        if arr.shape != expected:
+            raise InputError(f"{path}: {name} has shape {arr.shape}, expected {expected} (the camera's H, W)")
+    return GroundTruth(**arrays)
 
 
 def _stats(errors: NDArray[np.float64]) -> tuple[float, float, float]:

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from sliscan._validate import InputError
 from sliscan.patterns import bits_to_code, code_bits, gray_decode, gray_encode
-from sliscan.pmp import QUANTISATION_NOISE, ProjectorMap, fit_fringes, fringe_frames, line_image, \
+from sliscan.pmp import QUANTISATION_NOISE, Fringes, ProjectorMap, fit_fringes, fringe_frames, line_image, \
     modulation_threshold, unwrap_step
 from sliscan.types import PatternSpec
 
@@ -117,6 +117,32 @@ def pattern_frames(spec: PatternSpec) -> NDArray[np.float32]:
         for direction in spec.directions:
             frames += fringe_frames(spec, direction, spec.lines(direction) / (2 * spec.code_width))
     return np.stack(frames)
+
+
+def bit_pairs(frames: NDArray[np.float32], spec: PatternSpec, direction: str) -> NDArray[np.float32]:
+    """The pattern/inverse frames of every Gray code bit of `direction`: ``(bits, 2, H, W)``,
+    most significant bit first; a bit is 1 where the pattern is brighter than its inverse.
+
+    Parameters
+    ----------
+    frames : (frame_count, H, W) float32 array
+        The whole capture in the spec's order.
+    """
+    bits = spec.gray_bits(direction)
+    start = _pair_start(spec, direction)
+    return frames[start:start + 2 * bits].reshape(bits, 2, *frames.shape[1:])
+
+
+def phase_fit(frames: NDArray[np.float32], spec: PatternSpec, direction: str) -> Fringes:
+    """The N-step fit of a hybrid sequence's phase-shifted fringes along `direction` (``steps > 0``).
+
+    Parameters
+    ----------
+    frames : (frame_count, H, W) float32 array
+        The whole capture in the spec's order.
+    """
+    start = _phase_start(spec, direction)
+    return fit_fringes(frames[start:start + spec.steps])
 
 
 def check_order(frames: NDArray[np.float32], spec: PatternSpec) -> None:
@@ -227,8 +253,7 @@ def decode_graycode(frames: NDArray[np.float32], spec: PatternSpec, direction: s
     white_index, black_index = white_black_frames(spec)
     white, black = frames[white_index], frames[black_index]
     bits = spec.gray_bits(direction)
-    start = _pair_start(spec, direction)
-    pairs = frames[start:start + 2 * bits].reshape(bits, 2, *frames.shape[1:])
+    pairs = bit_pairs(frames, spec, direction)
     difference = pairs[:, 0] - pairs[:, 1]
     strength = np.abs(difference)
     weak = strength < white_threshold
@@ -244,8 +269,7 @@ def decode_graycode(frames: NDArray[np.float32], spec: PatternSpec, direction: s
     coord, block = code_block(code, 1 << dropped, spec, direction)
     index = code
     if spec.steps:
-        phase_start = _phase_start(spec, direction)
-        fit = fit_fringes(frames[phase_start:phase_start + spec.steps])
+        fit = phase_fit(frames, spec, direction)
         coord, index, distance = unwrap_step(coord, fit.cycles, 2 * spec.code_width)
         threshold = modulation_threshold(pair_noise(pairs), spec.steps, min_snr)
         valid &= ((fit.modulation > threshold) & (np.abs(distance) <= max_ambiguity) & (coord >= -0.5)

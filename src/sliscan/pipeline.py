@@ -16,9 +16,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sliscan._validate import InputError, check_image
-from sliscan.decode import decode
+from sliscan.decode import Decoded, decode
 from sliscan.demodulate import Carriers, Demodulated, demodulate
 from sliscan.outliers import default_max_jump, remove_speckles
+from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import Triangulator
 from sliscan.sequences import decode_frames
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
@@ -87,6 +88,31 @@ def baseline_direction(calibration: Calibration) -> str:
     w, h = calibration.projector.size
     offset = epipole[:2] - epipole[2] * np.array([(w - 1) / 2, (h - 1) / 2])
     return "rows" if abs(offset[1]) >= abs(offset[0]) else "columns"
+
+
+@dataclass(frozen=True, eq=False)
+class ScanStages:
+    """What `Scanner.scan_stages` computed on the way to the points (for `sliscan.report`).
+
+    Attributes
+    ----------
+    direction : {"rows", "columns"}
+        The projector coordinate that was triangulated.
+    demodulated : Demodulated or None
+        Composite kinds: the carrier envelopes, DC and residuals (camera orientation).
+    carriers : Carriers or None
+        Composite kinds: the carriers found in the capture.
+    decoded : Decoded or None
+        Composite kinds: bit levels, lit mask, stripes before the 3D filters.
+    maps : dict of str -> ProjectorMap, or None
+        Multi-frame kinds: every coded projector coordinate (``{"rows": ..., "columns": ...}``).
+    """
+
+    direction: str
+    demodulated: Demodulated | None = None
+    carriers: Carriers | None = None
+    decoded: Decoded | None = None
+    maps: dict[str, ProjectorMap] | None = None
 
 
 @dataclass
@@ -179,11 +205,19 @@ class Scanner:
         InputError
             If a frame is not of the camera's size, or a sequence has the wrong number of frames.
         """
+        return self.scan_stages(image)[0]
+
+    def scan_stages(self, image: ArrayLike) -> tuple[ScanResult, ScanStages]:
+        """`scan`, also returning the intermediate products it computed anyway (envelopes,
+        carriers, bit levels; the projector maps of a sequence), e.g. for a report.
+
+        Costs nothing over `scan` but the memory of keeping them.
+        """
         if self.spec.kind in MULTI_FRAME_KINDS:
             return self._scan_sequence(image)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        demod, _ = self.demodulate(image)
+        demod, carriers = self.demodulate(image)
         t1 = time.perf_counter()
         decoded = decode(demod, self.spec, **self.decode_options)
         t2 = time.perf_counter()
@@ -191,10 +225,11 @@ class Scanner:
         valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation)
         t3 = time.perf_counter()
         timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
-        return ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc),
-                          proj_map=np.where(valid, decoded.proj_map, np.nan).astype(np.float32),
-                          stripe=np.where(valid, decoded.stripe, -1).astype(np.int16),
-                          confidence=decoded.confidence, timings=timings)
+        result = ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc),
+                            proj_map=np.where(valid, decoded.proj_map, np.nan).astype(np.float32),
+                            stripe=np.where(valid, decoded.stripe, -1).astype(np.int16),
+                            confidence=decoded.confidence, timings=timings)
+        return result, ScanStages(self.spec.orientation, demodulated=demod, carriers=carriers, decoded=decoded)
 
     def triangulator(self, orientation: str) -> Triangulator:
         """The rig's `Triangulator` for one orientation, built on first use and kept."""
@@ -223,8 +258,8 @@ class Scanner:
         points[~valid] = np.nan
         return valid
 
-    def _scan_sequence(self, frames: ArrayLike) -> ScanResult:
-        """`scan` of a multi-frame capture: decode every coded direction, triangulate one."""
+    def _scan_sequence(self, frames: ArrayLike) -> tuple[ScanResult, ScanStages]:
+        """`scan_stages` of a multi-frame capture: decode every coded direction, triangulate one."""
         t0 = time.perf_counter()
         maps = decode_frames(frames, self.spec, shape=self.calibration.camera.shape, **self.decode_options)
         direction = baseline_direction(self.calibration) if self.spec.orientation == "both" else self.spec.orientation
@@ -233,11 +268,12 @@ class Scanner:
         points = self.triangulator(direction)(decoded.coord, decoded.valid)
         valid = self._measurable(points, decoded.coord, decoded.valid, direction)
         t2 = time.perf_counter()
-        return ScanResult(points=points, valid=valid, texture=texture_from_dc(decoded.brightness),
-                          proj_map=np.where(valid, decoded.coord, np.nan).astype(np.float32),
-                          stripe=np.where(valid, decoded.index, -1).astype(np.int16),
-                          confidence=decoded.confidence,
-                          timings={"decode": t1 - t0, "triangulate": t2 - t1, "total": t2 - t0})
+        result = ScanResult(points=points, valid=valid, texture=texture_from_dc(decoded.brightness),
+                            proj_map=np.where(valid, decoded.coord, np.nan).astype(np.float32),
+                            stripe=np.where(valid, decoded.index, -1).astype(np.int16),
+                            confidence=decoded.confidence,
+                            timings={"decode": t1 - t0, "triangulate": t2 - t1, "total": t2 - t0})
+        return result, ScanStages(direction, maps=maps)
 
 
 def scan(image: ArrayLike, spec: PatternSpec, calibration: Calibration, **options: Any) -> ScanResult:

@@ -239,6 +239,17 @@ def _direction_frames(frames: NDArray[np.float32], spec: PatternSpec, direction:
     return frames[start:start + block].reshape(len(spec.frequencies), spec.steps, *frames.shape[1:])
 
 
+def fringe_fits(frames: NDArray[np.float32], spec: PatternSpec, direction: str) -> list[Fringes]:
+    """The N-step fit (`fit_fringes`) of every frequency of one direction, coarsest first.
+
+    Parameters
+    ----------
+    frames : (frame_count, H, W) float32 array
+        The whole capture in the spec's order.
+    """
+    return [fit_fringes(level) for level in _direction_frames(frames, spec, direction)]
+
+
 def modulation_threshold(sigma: float, steps: int, min_snr: float) -> float:
     """Smallest reliable modulation: `min_snr` times the spread ``sigma sqrt(2 / N)`` of `B`
     on pure noise (Rayleigh), so noise alone passes with probability ``exp(-min_snr**2 / 2)``
@@ -269,8 +280,7 @@ def decode_pmp(frames: NDArray[np.float32], spec: PatternSpec, direction: str, *
     ProjectorMap
         `coord` with sub-pixel precision, `index` the fringe order of the finest frequency.
     """
-    stack = _direction_frames(frames, spec, direction)
-    fits = [fit_fringes(level) for level in stack]
+    fits = fringe_fits(frames, spec, direction)
     sigma = noise_level(fits, spec.steps)
     lines = spec.lines(direction)
     freqs = spec.frequencies

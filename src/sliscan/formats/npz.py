@@ -14,8 +14,10 @@ import struct
 import zipfile
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from sliscan._validate import InputError, atomic_path
 from sliscan.types import ScanResult
@@ -62,6 +64,46 @@ def write_scan_npz(path: str | os.PathLike, result: ScanResult) -> Path:
     return Path(path)
 
 
+def read_npz_arrays(path: str | os.PathLike, dtypes: dict[str, Any], *, what: str) -> dict[str, NDArray]:
+    """Read named arrays from an npz file (no pickle), each cast to its dtype.
+
+    Parameters
+    ----------
+    path : path
+        The npz file.
+    dtypes : dict of str -> dtype
+        The arrays the file must hold and the dtype each is returned with.
+    what : str
+        What the file should be, for the message on a missing array (``"a sliscan scan"``).
+
+    Raises
+    ------
+    InputError
+        If the file cannot be read, is not an npz archive, or lacks an array; the message names
+        the file.
+    """
+    p = Path(path)
+    try:
+        f = open(p, "rb")
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    with f:
+        try:
+            loaded = np.load(f, allow_pickle=False)
+        except _CORRUPT as exc:
+            raise InputError(f"{p}: not a valid npz file ({exc})") from None
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise InputError(f"{p}: not an npz archive (a single .npy array)")
+        with loaded:
+            missing = sorted(set(dtypes) - set(loaded.files))
+            if missing:
+                raise InputError(f"{p}: not {what}: missing arrays {missing}")
+            try:
+                return {name: loaded[name].astype(dtype) for name, dtype in dtypes.items()}
+            except _CORRUPT as exc:
+                raise InputError(f"{p}: corrupt npz file ({exc})") from None
+
+
 def read_scan_npz(path: str | os.PathLike) -> ScanResult:
     """Read a `ScanResult` written by `write_scan_npz`.
 
@@ -81,26 +123,11 @@ def read_scan_npz(path: str | os.PathLike) -> ScanResult:
         the message names the file.
     """
     p = Path(path)
+    arrays = read_npz_arrays(p, {**ARRAY_DTYPES, "timings": str}, what="a sliscan scan")
     try:
-        f = open(p, "rb")
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    with f:
-        try:
-            loaded = np.load(f, allow_pickle=False)
-        except _CORRUPT as exc:
-            raise InputError(f"{p}: not a valid npz file ({exc})") from None
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
-            raise InputError(f"{p}: not an npz archive (a single .npy array)")
-        with loaded:
-            missing = sorted((set(ARRAY_DTYPES) | {"timings"}) - set(loaded.files))
-            if missing:
-                raise InputError(f"{p}: not a sliscan scan: missing arrays {missing}")
-            try:
-                arrays = {name: loaded[name].astype(dtype) for name, dtype in ARRAY_DTYPES.items()}
-                timings = json.loads(str(loaded["timings"]))
-            except _CORRUPT as exc:
-                raise InputError(f"{p}: corrupt npz file ({exc})") from None
+        timings = json.loads(str(arrays.pop("timings")))
+    except ValueError as exc:
+        raise InputError(f"{p}: corrupt npz file ({exc})") from None
     if not isinstance(timings, dict):
         raise InputError(f"{p}: timings must be a JSON object")
     shape = arrays["valid"].shape
