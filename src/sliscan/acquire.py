@@ -459,7 +459,7 @@ def suggested_settle(latencies: Sequence[float]) -> float:
     >>> suggested_settle([0.061, 0.067, 0.064])
     0.11
     """
-    return math.ceil(150 * max(latencies) - 1e-9) / 100
+    return math.ceil(round(150 * max(latencies), 3)) / 100  # rounded to 1e-5 s first: no float noise
 
 
 # --------------------------------------------------------------------------------------------
