@@ -278,21 +278,22 @@ class Session:
         """
         w, h = self.display.size
         self._black, self._white = np.zeros((h, w), np.uint8), np.full((h, w), 255, np.uint8)
-        lit = 0.0
+        problem = ""
         for attempt in range(self.retakes + 1):
             wait = self.settle_s * 2**attempt
             blacks = self._settled_pair(self._black, wait, "black")
             whites = self._settled_pair(self._white, wait, "white")
             reference = Reference.measure(blacks, whites)
-            lit = reference.lit_fraction
-            if lit < MIN_LIT:
+            if reference.lit_fraction < MIN_LIT:
+                problem = (f"the camera does not see the projector: its white and black captures differ in "
+                           f"{reference.lit_fraction:.1%} of the frame")
                 continue
             again = self._settled_pair(self._black, wait, "black")
             if not reference.differ(again[1], reference.black):
                 self.reference = reference
                 return reference
-        raise DeviceError(f"the camera does not see the projector: its white and black captures differ in {lit:.1%} "
-                          f"of the frame; point the camera at the projected area, check --screen, or lengthen --settle")
+            problem = "the projector's black looks different each time it is shown"
+        raise DeviceError(f"{problem}; point the camera at the projected area, check --screen, or lengthen --settle")
 
     def _require_reference(self) -> Reference:
         if self.reference is None:
@@ -445,9 +446,10 @@ class Session:
         return latencies
 
     def settings(self) -> dict[str, Any]:
-        """The session's timing and checks, and the references' numbers, for the record."""
-        out: dict[str, Any] = {"settle_s": self.settle_s, "average": self.average, "verify": self.verify,
-                               "retakes_allowed": self.retakes}
+        """The session's timing and checks (``wait_s``: the settle delay it ended with, longer
+        than ``settle_s`` when the display lagged), and the references' numbers, for the record."""
+        out: dict[str, Any] = {"settle_s": self.settle_s, "wait_s": self.wait_s, "average": self.average,
+                               "verify": self.verify, "retakes_allowed": self.retakes}
         if self.reference is not None:
             out.update(self.reference.summary())
         return out

@@ -335,7 +335,9 @@ def acquire_cmd(pattern_path: Path | None, camera_id: str, screen: str, resoluti
         shots = _take(session, images, stage)
         write_record(output, spec, [s.raw for s in shots], _record_info(session, devs, shots, paths))
     w, h = devs.camera.size
-    click.echo(f"wrote {output / RECORD_NAME} and {len(paths)} {w}x{h} captures {paths[0].name} .. {paths[-1].name}: "
+    files = paths[0].name if len(paths) == 1 else f"{len(paths)} {w}x{h} captures {paths[0].name} .. {paths[-1].name}"
+    files = f"the {w}x{h} capture {files}" if len(paths) == 1 else files
+    click.echo(f"wrote {output / RECORD_NAME} and {files}: "
                f"{spec.kind} pattern in {session.elapsed():.2f} s, {_retake_summary(shots)}; scan them with "
                f"'sliscan scan {output / RECORD_NAME} --calibration RIG.json'")
 

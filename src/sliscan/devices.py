@@ -236,6 +236,7 @@ class OpenCVCamera:
         if gain is not None:
             cap.set(cv2.CAP_PROP_GAIN, gain)
         cap.set(cv2.CAP_PROP_AUTO_WB, 0)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # where the back end allows it: fewer stale frames queued
 
     @property
     def size(self) -> tuple[int, int]:
