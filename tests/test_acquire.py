@@ -408,6 +408,8 @@ def test_live_records_frames_for_the_batch(folder):
     batch = ok("scan", "rec/acquisition.json", "--calibration", "rig.json", "--out", "scans", "--workers", "1",
                cwd=folder)
     assert batch.startswith("2 frames scanned")
+    windowed = ok("live", "--pattern", "cp.json", "--calibration", "rig.json", *VIRTUAL, "--frames", "1", cwd=folder)
+    assert windowed.startswith("live: 1 frame in ")  # the depth-map window, on SDL's dummy driver
     fails("live", "--pattern", "pmp/pmp.json", "--calibration", "rig.json", *VIRTUAL, "--no-window", "--frames", "1",
           cwd=folder, match="live scanning needs a single-shot pattern")
     fails("live", "--pattern", "cp.json", "--calibration", "rig.json", *VIRTUAL, "--no-window", cwd=folder,

@@ -523,5 +523,5 @@ def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str,
                     "live": dataclasses.asdict(stats), "captures": recorder.log}
             write_record(record, spec, [], info, paths=recorder.paths)  # type: ignore[arg-type]
             wrote = f"wrote {recorder.paths[0]} .. {recorder.paths[-1].name} and {record / RECORD_NAME}"
-    click.echo(f"live: {stats.frames} frames in {stats.seconds:.1f} s ({stats.fps:.2f} frames/s scanned), "
+    click.echo(f"live: {stats.frames} frame{'s' if stats.frames != 1 else ''} in {stats.seconds:.1f} s ({stats.fps:.2f} frames/s scanned), "
                f"{stats.completeness:.1%} of each frame with points on average; {wrote}")

@@ -28,7 +28,7 @@ import contextlib
 import math
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from typing import Any, Protocol
 
 import numpy as np
@@ -624,7 +624,3 @@ def virtual_devices(rig: Rig, scene: Surface, conditions: Conditions, *, latency
     stage = VirtualStage(rig, scene, conditions, latency_s=latency_s, frame_period_s=frame_period_s, motion=motion)
     return (VirtualDisplay(stage, drop_shows=drop_shows),
             VirtualCamera(stage, exposure=exposure, gain=gain, repeat_grabs=repeat_grabs, seed=seed), stage.clock)
-
-
-#: A callable that puts the virtual target of calibration pose k in front of the rig.
-PoseMover = Callable[[int], None]
