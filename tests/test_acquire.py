@@ -395,6 +395,7 @@ def test_acquire_target_calibration_recovers_the_virtual_rig(tmp_path, small_rig
         assert np.sqrt(np.mean(np.sum(error**2, axis=1))) < 0.1, device
 
 
+@pytest.mark.xdist_group("batch")  # its batch scan's Dask dashboard takes port 8787: not beside test_batch's cluster
 def test_live_records_frames_for_the_batch(folder):
     """`sliscan live` on the moving virtual sphere for 2 frames, recording; the recording's
     record scans as a batch, every frame succeeding."""

@@ -76,6 +76,9 @@ THRESHOLD_FLOOR = 1.5 / 255
 #: The projector must light at least this fraction of the camera's view.
 MIN_LIT = 0.01
 
+#: Retakes wait at least twice this (seconds), even after a settle delay of 0.
+MIN_RETAKE_WAIT_S = 0.05
+
 #: Two grabs of one image agree in mean level within this (in full scale): 1.3 grey levels.
 LEVEL_TOLERANCE = 0.005
 
@@ -238,6 +241,11 @@ class Session:
         self._black = self._white = np.zeros(0, np.uint8)
         self._in_flight: list[NDArray[np.float32]] = []
 
+    def wait_for(self, attempt: int) -> float:
+        """Seconds to wait before grabbing at attempt `attempt` (0 the first): the settle delay,
+        doubled at each retake (from at least `MIN_RETAKE_WAIT_S`, so a zero delay grows too)."""
+        return self.wait_s if attempt == 0 else max(self.wait_s, MIN_RETAKE_WAIT_S) * 2**attempt
+
     def elapsed(self) -> float:
         """Seconds on the session's clock since it began."""
         return round(self.clock.now() - self._t0, 6)
@@ -278,9 +286,10 @@ class Session:
         """
         w, h = self.display.size
         self._black, self._white = np.zeros((h, w), np.uint8), np.full((h, w), 255, np.uint8)
+        self._in_flight = []
         problem = ""
         for attempt in range(self.retakes + 1):
-            wait = self.settle_s * 2**attempt
+            wait = self.wait_for(attempt)
             blacks = self._settled_pair(self._black, wait, "black")
             whites = self._settled_pair(self._white, wait, "white")
             reference = Reference.measure(blacks, whites)
@@ -382,7 +391,7 @@ class Session:
         rejected: list[dict[str, Any]] = []
         lagging = False
         for attempt in range(self.retakes + 1):
-            wait = self.wait_s * 2**attempt
+            wait = self.wait_for(attempt)
             got = self._try_flash(target, previous, wait) if flash else self._try_plain(target, avoid, wait)
             if isinstance(got, str) and got.startswith(_AMBIGUOUS) and self.verify == "change":
                 rejected.append({"attempt": attempt, "reason": f"{got}: flash check"})
