@@ -2,8 +2,8 @@
 
 Commands: ``pattern`` (``composite``, ``carrier-only``, ``modified``, ``pmp``, ``graycode``),
 ``simulate``, ``scan``, ``calibrate`` (from a G file), ``calibrate-target`` and ``calibrate-board``
-(from captured calibration sequences), ``report`` and ``view`` (HTML pages, issue 10) and ``demo``.
-Every command
+(from captured calibration sequences), ``report`` and ``view`` (HTML pages, issue 10), ``demo``,
+and ``acquire`` and ``live`` (with a projector and a camera; in `sliscan.cli_acquire`).  Every command
 
 * checks its output paths first: none may be one of its input files or another of its outputs,
   and none may exist unless ``--overwrite`` is given (``demo`` alone replaces its own files);
@@ -35,7 +35,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from sliscan import __version__, batch, evaluate, motion, patterns, photometry, sequences, simulate, viewer
+from sliscan import __version__, acquire, batch, evaluate, motion, patterns, photometry, sequences, simulate, viewer
 from sliscan import report as report_module
 from sliscan._validate import InputError, atomic_path, read_image, write_image, write_images
 from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
@@ -1006,6 +1006,19 @@ def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, ca
     return 0
 
 
+def _scan_sources(captures: Sequence[Path], pattern_path: Path | None) -> tuple[list[Path], PatternSpec, Path]:
+    """The capture files and pattern of `sliscan scan`, and the file the pattern came from:
+    `--pattern`, or an acquisition record given alone as CAPTURES."""
+    if len(captures) == 1 and acquire.is_record(captures[0]):
+        if pattern_path is not None:
+            raise click.UsageError(f"{captures[0]} holds its pattern: leave out --pattern")
+        record = acquire.read_record(captures[0])
+        return record.files, record.spec, captures[0]
+    if pattern_path is None:
+        raise click.UsageError("give --pattern PATTERN.json (or an acquisition record, which holds its pattern)")
+    return _capture_files(captures), PatternSpec.load(pattern_path), pattern_path
+
+
 @cli.command(epilog="""\b
 Examples:
   sliscan scan capture.png --pattern cp.json --calibration rig.json --mat5 out/sphere --ply sphere.ply
@@ -1016,6 +1029,7 @@ Examples:
   sliscan scan cap/ --pattern pmp/pmp.json --calibration rig.json --ply sphere.ply        # a folder
   sliscan scan 'cap/pmp_*.png' --pattern pmp/pmp.json --calibration rig.json --npz s.npz  # a glob
   sliscan scan gc_00.png gc_01.png ... gc_41.png --pattern gc.json --calibration rig.json --ply s.ply
+  sliscan scan acq/acquisition.json --calibration rig.json --ply s.ply   # what sliscan acquire took
 \b
 Batches of single-shot frames (one output per frame, named by frame index, and a summary):
   sliscan scan video/ --pattern cp.json --calibration rig.json --out scans --format ply --format npz
@@ -1023,8 +1037,8 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
   sliscan scan take.avi --pattern cp.json --calibration rig.json --out scans --resume
   sliscan scan 'cap/*.png' --pattern cp.json --calibration rig.json --out scans --scheduler tcp://head:8786""")
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
-              help="PatternSpec JSON of the projected pattern.")
+@click.option("--pattern", "pattern_path", type=INPUT_FILE,
+              help="PatternSpec JSON of the projected pattern (not with an acquisition record, which holds it).")
 @_calibration_options
 @click.option("--mat5", "mat5_prefix", type=click.Path(path_type=Path),
               help="Write PREFIX{X,Y,Z}.byt, PREFIXC.bmp, PREFIXI.bmp.")
@@ -1047,7 +1061,7 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
               help="Batch: run on this Dask distributed cluster instead of a local one.")
 @click.option("--resume", is_flag=True, help="Batch: skip the frames whose outputs are all in --out.")
 @_overwrite_option
-def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
+def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
          method: str, timings: bool, report: Path | None, out_dir: Path | None, formats: tuple[str, ...],
          workers: int | None, scheduler: str | None, resume: bool, overwrite: bool) -> int:
@@ -1056,7 +1070,9 @@ def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | Non
     batch of single-shot frames.
 
     CAPTURES are image files, folders (their image files, sorted by name) or quoted globs
-    (sorted by name), taken in the order given: name frames with zero-padded numbers.  Every
+    (sorted by name), taken in the order given: name frames with zero-padded numbers; or the
+    acquisition.json record of `sliscan acquire` or `sliscan live --record` (its frames, with
+    the pattern it holds: no --pattern).  Every
     capture must have the calibrated camera's size.  A --camera-matrix/--projector-matrix
     pair takes its sizes from the capture and the pattern.  Writes exactly the outputs asked
     for (creating their folders) and prints the number of points, the completeness of the frame
@@ -1069,8 +1085,7 @@ def scan(captures: tuple[Path, ...], pattern_path: Path, calibration: Path | Non
     frame that fails is recorded in summary.csv/summary.json and the others go on.  Exit
     status 0 when every frame succeeded, 1 when some failed.
     """
-    files = _capture_files(captures)
-    spec = PatternSpec.load(pattern_path)
+    files, spec, pattern_path = _scan_sources(captures, pattern_path)
     batch_options = out_dir is not None or formats or workers is not None or scheduler is not None or resume
     if spec.kind not in MULTI_FRAME_KINDS and (len(files) > 1 or batch_options or batch.is_video(files[0])):
         if mat5_prefix is not None or ply is not None or npz is not None or timings:
@@ -1229,6 +1244,15 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
         require_matplotlib()
     spec = _sequence_spec(pattern_path)
     target = CircleTarget.load(target_path)
+    _run_calibrate_target(files, spec, pattern_path, target, target_path, method=method, output=output, g_file=g_file,
+                          cam_txt=cam_txt, proj_txt=proj_txt, plot=plot)
+
+
+def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, target: CircleTarget,
+                          target_path: Path, *, method: str, output: Path, g_file: Path | None = None,
+                          cam_txt: Path | None = None, proj_txt: Path | None = None, plot: Path | None = None) -> None:
+    """`calibrate-target` once its inputs are checked (also the end of `sliscan acquire
+    --calibration-target`): decode, calibrate, write, print."""
     capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
     with _progress(3) as stage:
         stage("read")
@@ -1316,6 +1340,16 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
                    overwrite=overwrite)
     if plot is not None:
         require_matplotlib()
+    _run_calibrate_board(pose_files, spec, board, square, projector_distortion=projector_distortion, output=output,
+                         plot=plot)
+
+
+def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, board: tuple[int, int], square: float,
+                         *, projector_distortion: bool, output: Path, plot: Path | None = None) -> None:
+    """`calibrate-board` once its inputs are checked (also the end of `sliscan acquire
+    --calibration-board`): per pose read and decode the frames and find the board, calibrate,
+    write, print."""
+    poses = list(pose_files)
     views: list[BoardView] = []
     used: list[Path] = []
     shape = None
@@ -1442,6 +1476,11 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
     w, h = camera
     click.echo(f"wrote {out}/rig.json and {', '.join(f'{out}/{n}/' for n in specs)}: {w}x{h} sphere demo "
                f"in {time.perf_counter() - t0:.1f} s")
+
+
+# `sliscan acquire` and `sliscan live` (scanning with a projector and a camera) live in their own
+# module, which registers them on `cli`.
+from sliscan import cli_acquire  # noqa: E402,F401
 
 
 # --------------------------------------------------------------------------------------------

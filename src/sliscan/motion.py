@@ -162,12 +162,22 @@ def render_motion(rig: Rig, scene: Surface, projected: ArrayLike, motion: Motion
         grow with the number of frames).
     """
     cond = Conditions() if conditions is None else conditions
+    for k in range(motion.frames):
+        frame_scene, frame_cond = posed_scene(rig, scene, motion, k, cond, pivot=pivot)
+        yield render(rig, frame_scene, projected, frame_cond)
+
+
+def posed_scene(rig: Rig, scene: Surface, motion: Motion, k: int, conditions: Conditions, *,
+                pivot: ArrayLike | None = None) -> tuple[Surface, Conditions]:
+    """Frame `k` of `scene` moving by `motion`: the moved scene and its conditions (the albedo
+    carried by the object, seed ``conditions.seed + k``); what `render_motion` renders.
+
+    Parameters are those of `render_motion`.
+    """
     centre = rig.working_point if pivot is None else np.asarray(pivot, dtype=np.float64)
     mover, background = split_background(scene)
-    for k in range(motion.frames):
-        rotation, translation = motion.pose(k)
-        moved = Moved(mover, rotation, translation, centre)
-        frame_scene = Union(moved, *background) if background else moved
-        seed = None if cond.seed is None else cond.seed + k
-        frame_cond = cond.with_(albedo=MovedAlbedo(cond.albedo, moved, background), seed=seed)
-        yield render(rig, frame_scene, projected, frame_cond)
+    rotation, translation = motion.pose(k)
+    moved = Moved(mover, rotation, translation, centre)
+    frame_scene = Union(moved, *background) if background else moved
+    seed = None if conditions.seed is None else conditions.seed + k
+    return frame_scene, conditions.with_(albedo=MovedAlbedo(conditions.albedo, moved, background), seed=seed)
