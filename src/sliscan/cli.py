@@ -1245,12 +1245,13 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
     spec = _sequence_spec(pattern_path)
     target = CircleTarget.load(target_path)
     _run_calibrate_target(files, spec, pattern_path, target, target_path, method=method, output=output, g_file=g_file,
-                          cam_txt=cam_txt, proj_txt=proj_txt, plot=plot)
+                          cam_txt=cam_txt, proj_txt=proj_txt, plot=plot, residuals_path=residuals_path)
 
 
 def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, target: CircleTarget,
                           target_path: Path, *, method: str, output: Path, g_file: Path | None = None,
-                          cam_txt: Path | None = None, proj_txt: Path | None = None, plot: Path | None = None) -> None:
+                          cam_txt: Path | None = None, proj_txt: Path | None = None, plot: Path | None = None,
+                          residuals_path: Path | None = None) -> None:
     """`calibrate-target` once its inputs are checked (also the end of `sliscan acquire
     --calibration-target`): decode, calibrate, write, print."""
     capture = files[0] if len(files) == 1 else f"{files[0]} .. {files[-1]}"
@@ -1341,11 +1342,12 @@ def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tupl
     if plot is not None:
         require_matplotlib()
     _run_calibrate_board(pose_files, spec, board, square, projector_distortion=projector_distortion, output=output,
-                         plot=plot)
+                         plot=plot, residuals_path=residuals_path)
 
 
 def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, board: tuple[int, int], square: float,
-                         *, projector_distortion: bool, output: Path, plot: Path | None = None) -> None:
+                         *, projector_distortion: bool, output: Path, plot: Path | None = None,
+                         residuals_path: Path | None = None) -> None:
     """`calibrate-board` once its inputs are checked (also the end of `sliscan acquire
     --calibration-board`): per pose read and decode the frames and find the board, calibrate,
     write, print."""
