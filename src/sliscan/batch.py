@@ -290,10 +290,39 @@ def _worker_threads() -> int:
     return max(1, available_cpus() // max(1, tasks))
 
 
+#: glibc `mallopt` parameters and the values `_keep_scan_memory` gives them (bytes).
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_TRIM_BYTES, _MMAP_BYTES = 1 << 30, 32 << 20
+
+
+def _keep_scan_memory() -> None:
+    """Let glibc keep freed scan arrays for the next frame.
+
+    Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which also freezes
+    glibc's adaptive mmap threshold at 128 KiB: every array of a scan is then mapped, faulted in
+    page by page and unmapped again, and a 1280x1024 scan takes 1.45 s in a worker instead of
+    1.16 s with this (1.0 s with two threads outside Dask).  Arrays up to 32 MiB (glibc's own adaptive ceiling) come from the heap again, and the
+    heap is trimmed only past 1 GiB of free memory: a batch's memory is the same from frame to
+    frame.  Nothing happens where the C library is not glibc.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(_M_MMAP_THRESHOLD, _MMAP_BYTES)
+    mallopt(_M_TRIM_THRESHOLD, _TRIM_BYTES)
+
+
 def _scanner(job: Job) -> Scanner:
     """This process's `Scanner` for `job`, built on first use."""
     scanner = _SCANNERS.get(job.token)
     if scanner is None:
+        if not _SCANNERS:
+            _keep_scan_memory()
         os.environ.setdefault(THREADS_ENV, str(_worker_threads()))
         scanner = job.scanner()
         while len(_SCANNERS) >= _SCANNERS_KEPT:
@@ -485,6 +514,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
     workers)."""
     import logging
 
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -493,7 +523,10 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
         return
     n = workers or available_cpus()
     threads = threads or max(1, available_cpus() // n)
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.ERROR, env={THREADS_ENV: str(threads)}) as cluster, \
+    # Local workers start without Dask's MALLOC_TRIM_THRESHOLD_ (see `_keep_scan_memory`, which
+    # is what workers of other clusters get): 8 frames of 1280x1024 in 11.4 s instead of 12.9 s.
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}), \
+            LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                         silence_logs=logging.ERROR, env={THREADS_ENV: str(threads)}) as cluster, \
             Client(cluster) as client:
         yield client
