@@ -1248,6 +1248,19 @@ def calibrate_target_cmd(captures: tuple[Path, ...], pattern_path: Path, target_
                           cam_txt=cam_txt, proj_txt=proj_txt, plot=plot, residuals_path=residuals_path)
 
 
+def _save_residuals(residuals: Residuals, plot: Path | None, path: Path | None, *, title: str) -> list[str]:
+    """Write a calibration's residual plot (`plot`, PNG) and residuals (`path`, JSON) where asked;
+    returns the files written."""
+    written = []
+    if plot is not None:
+        plot_residuals(plot, residuals, title=title)
+        written.append(str(plot))
+    if path is not None:
+        residuals.save(path)
+        written.append(str(path))
+    return written
+
+
 def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, target: CircleTarget,
                           target_path: Path, *, method: str, output: Path, g_file: Path | None = None,
                           cam_txt: Path | None = None, proj_txt: Path | None = None, plot: Path | None = None,
@@ -1275,12 +1288,8 @@ def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path
             write_matrix_txt(path, device.matrix)
             written.append(str(path))
     residuals = target_residuals(calib, rows, label=target_path.name)
-    if plot is not None:
-        plot_residuals(plot, residuals, title=f"calibrate-target: {method} DLT, {len(rows)} circles")
-        written.append(str(plot))
-    if residuals_path is not None:
-        residuals.save(residuals_path)
-        written.append(str(residuals_path))
+    written += _save_residuals(residuals, plot, residuals_path,
+                               title=f"calibrate-target: {method} DLT, {len(rows)} circles")
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} circles (perspective bias "
                f"{calib.extra['perspective_bias_px']:.2g} px corrected); reprojection {_residual_summary(calib)}")
 
@@ -1379,12 +1388,8 @@ def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, 
         calib.save(output)
     written = [str(output)]
     residuals = Residuals(tuple(p.name for p in used), residuals.camera, residuals.projector, residuals.points)
-    if plot is not None:
-        plot_residuals(plot, residuals, title=f"calibrate-board: {len(views)} poses, {board[0]}x{board[1]} corners")
-        written.append(str(plot))
-    if residuals_path is not None:
-        residuals.save(residuals_path)
-        written.append(str(residuals_path))
+    written += _save_residuals(residuals, plot, residuals_path,
+                               title=f"calibrate-board: {len(views)} poses, {board[0]}x{board[1]} corners")
     Console().print(_board_table(calib, used))
     outliers = calib.extra["outlier_views"]
     flagged = f"; outlier poses: {', '.join(str(used[k]) for k in outliers)}" if outliers else ""
