@@ -171,7 +171,7 @@ def test_batch_on_an_existing_scheduler(take: Path) -> None:
     (take / "three").mkdir(exist_ok=True)
     for k in (1, 2, 3):
         (take / f"three/f{k}.png").write_bytes((take / f"frames/f{k:02d}.png").read_bytes())
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         result = sliscan("scan", "three", "--pattern", "cp.json", "--calibration", "rig.json", "--out", "remote",
                          "--scheduler", cluster.scheduler_address, cwd=take)
     assert result.returncode == 0, result.stderr
