@@ -211,3 +211,32 @@ def test_two_means_on_sorted_slices_equals_the_masked_medians(n_off, n_on, sprea
     if rounded:  # ties at the threshold
         v = np.round(v * 10) / 10
     assert two_means(v) == _two_means_by_masks(v)
+
+
+def _pilot_spec():
+    *carriers, pilot = patterns.spread_carriers(4, 1024, pilot=True)
+    return patterns.PatternSpec(projector_size=(1024, 768), carriers=tuple(carriers), pilot=pilot, b_p=0.1)
+
+
+@pytest.mark.parametrize("make_spec, method, albedo, options", [
+    (patterns.thesis_spec, "window", "checker", {}),
+    (patterns.default_spec, "bandpass", "smooth", {}),
+    (lambda size: _pilot_spec(), "window", "smooth", {}),
+    (lambda size: patterns.thesis_spec(size, orientation="columns"), "window", "smooth", {}),
+    (patterns.default_spec, "window", "checker", {"stripe_borders": False, "min_snr": 0.0, "neighbour_radius": 0}),
+])
+def test_compiled_decoder_equals_the_numpy_form(make_spec, method, albedo, options):
+    """Every output of `decode` (stripes, masks, confidence, levels) is exactly what the plain
+    numpy decoder (`decode_reference`, sliscan's before the kernels) computes on the same
+    envelopes: the kernels replicate its float32/float64 arithmetic, so nothing may differ."""
+    from decode_reference import decode as decode_reference
+
+    spec = make_spec((1024, 768))
+    rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768),
+                               baseline_axis="vertical" if spec.orientation == "rows" else "horizontal")
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), realistic(4, albedo))
+    demod, _ = demodulate(capture.image, spec, method=method)
+    fast, reference = decode(demod, spec, **options), decode_reference(demod, spec, **options)
+    for name in ("stripe", "proj_map", "valid", "lit", "confidence", "levels"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(reference, name), err_msg=name)
+    assert 0.15 < fast.valid.mean() < 0.95  # a real decode (sphere and background), not an empty one

@@ -6,24 +6,63 @@ import pytest
 from sliscan import InputError, PatternSpec, Scanner, ScanResult, patterns, simulate
 from sliscan.evaluate import accuracy, oracle_points, true_stripes
 from sliscan.patterns import stripe_center
-from sliscan.pipeline import baseline_direction, device_centre, inside_projector, triangulation_angle
+from sliscan.pipeline import baseline_direction, device_centre, measurable
 from sliscan.sequences import decode_frames, render_frames
 
 
-def test_device_centres_and_triangulation_angle(small_rig):
+def test_device_centres(small_rig):
     camera = device_centre(small_rig.calibration.camera.matrix)
     projector = device_centre(small_rig.calibration.projector.matrix)
     np.testing.assert_allclose(camera, [0, 0, 0], atol=1e-9)
     np.testing.assert_allclose(projector, [0, -200, 0], atol=1e-6)  # 200 mm above (y down)
-    point = np.array([[[0.0, 0.0, 800.0]]])
-    # closed form: the rays from (0, 0, 0) and (0, -200, 0) meet at atan(200 / 800)
-    assert triangulation_angle(point, small_rig.calibration)[0, 0] == pytest.approx(np.degrees(np.arctan(0.25)))
 
 
-def test_inside_projector(small_rig):
-    spec = patterns.thesis_spec((1024, 768))
-    points = np.array([[[0.0, 0.0, 800.0], [0.0, 0.0, -800.0], [5000.0, 0.0, 800.0], [np.nan, 0, 0]]])
-    assert inside_projector(points, small_rig.calibration, spec.orientation).tolist() == [[True, False, False, False]]
+def test_measurable_drops_grazing_rays_at_the_closed_form_angle(small_rig):
+    # the rays from (0, 0, 0) and (0, -200, 0) meet at (0, 0, 800) at atan(200 / 800) = 14.036 deg
+    point = np.array([[[0.0, 0.0, 800.0]]], dtype=np.float32)
+    angle = np.degrees(np.arctan(0.25))
+    for min_angle, expected in ((angle - 1e-6, True), (angle + 1e-6, False)):
+        kept = measurable(point, np.ones((1, 1), bool), small_rig.calibration, "rows", min_angle_deg=min_angle)
+        assert kept[0, 0] == expected
+
+
+def test_measurable_needs_the_projector_to_light_the_point(small_rig):
+    points = np.array([[[0.0, 0.0, 800.0], [0.0, 0.0, -800.0], [5000.0, 0.0, 800.0], [np.nan, 0, 0],
+                        [0.0, 0.0, 800.0]]], dtype=np.float32)
+    valid = np.array([[True, True, True, True, False]])
+    kept = measurable(points, valid, small_rig.calibration, "rows", min_angle_deg=2.0)
+    assert kept.tolist() == [[True, False, False, False, False]]
+
+
+def _measurable_reference(points, valid, calibration, direction, min_angle_deg):
+    """The numpy form of `measurable` (what sliscan computed before the compiled kernel)."""
+    finite = valid & np.all(np.isfinite(points), axis=-1)
+    xyz = np.where(finite[..., None], points, 0).astype(np.float64)
+    ok = finite.copy()
+    for device in (calibration.camera, calibration.projector):
+        m = device.matrix / np.linalg.norm(device.matrix[2, :3])
+        ok &= np.sign(np.linalg.det(device.matrix[:, :3])) * (xyz @ m[2, :3] + m[2, 3]) > 0
+    xp = calibration.projector.project(xyz)
+    w, h = calibration.projector.size
+    across, lines = (xp[..., 0], w) if direction == "rows" else (xp[..., 1], h)
+    ok &= (across > -0.5 - 0.02 * lines) & (across < lines - 0.5 + 0.02 * lines)
+    a = xyz - device_centre(calibration.camera.matrix)
+    b = xyz - device_centre(calibration.projector.matrix)
+    with np.errstate(invalid="ignore", divide="ignore"):  # the zeroed invalid points sit on the camera centre
+        cos = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return ok & (np.degrees(np.arccos(np.clip(cos, -1, 1))) >= min_angle_deg)
+
+
+@pytest.mark.parametrize("direction", ["rows", "columns"])
+def test_measurable_kernel_equals_the_numpy_form(small_rig, direction):
+    """Random points around and far outside the working volume, some invalid or NaN."""
+    rng = np.random.default_rng(5)
+    points = (rng.normal(0, 1, (90, 70, 3)) * [600, 600, 900] + [0, 0, 500]).astype(np.float32)
+    points[rng.random(points.shape[:2]) < 0.05, 1] = np.nan
+    valid = rng.random(points.shape[:2]) < 0.9
+    kept = measurable(points, valid, small_rig.calibration, direction, min_angle_deg=5.0)
+    np.testing.assert_array_equal(kept, _measurable_reference(points, valid, small_rig.calibration, direction, 5.0))
+    assert 0.1 < kept.mean() < 0.8  # both outcomes are exercised
 
 
 def _perfect_result(truth, spec, calibration):

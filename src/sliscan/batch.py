@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from sliscan._validate import InputError, atomic_path, atomic_paths, decode_image
-from sliscan.demodulate import THREADS_ENV, available_cpus
+from sliscan._threads import THREADS_ENV, available_cpus
 from sliscan.formats import mat5
 from sliscan.pipeline import Scanner
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult

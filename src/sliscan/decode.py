@@ -29,8 +29,9 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.demodulate import Demodulated, default_workers
-from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
+from sliscan._threads import default_workers, over_rows
+from sliscan.demodulate import Demodulated
+from sliscan.patterns import code_to_stripe, stripe_center, stripe_codes
 from sliscan.types import PatternSpec
 
 
@@ -69,13 +70,15 @@ def two_means(values: NDArray[np.floating], *, iterations: int = 20) -> tuple[fl
     >>> [round(m, 3) for m in two_means(np.array([0.0, 0.1, 0.0, 0.9, 1.0, 1.1]))]
     [0.0, 1.0]
     """
-    v = np.asarray(values, dtype=np.float64).ravel()
+    v = np.asarray(values).ravel()
     v = v[np.isfinite(v)]
     if v.size == 0:
         return 0.0, 1.0
-    lo, hi = float(np.percentile(v, 5)), float(np.percentile(v, 95))
-    v = np.clip(v, float(np.percentile(v, 0.5)), float(np.percentile(v, 99.5)))  # a few wild values cannot own a cluster
-    v.sort()  # each cluster is then a slice, and its median a middle element: no partition per iteration
+    # sorted once (in the samples' own dtype: the conversion keeps the order), so each cluster
+    # is a slice and its median a middle element, and clipping keeps the order
+    v = np.sort(v).astype(np.float64)
+    floor, lo, hi, top = (float(q) for q in np.percentile(v, [0.5, 5, 95, 99.5]))
+    v = np.clip(v, floor, top)  # a few wild values cannot own a cluster
     for _ in range(iterations):
         split = int(np.searchsorted(v, 0.5 * (lo + hi), side="left"))
         if split == 0 or split == v.size:
@@ -93,12 +96,35 @@ def _sorted_median(a: NDArray[np.float64]) -> float:
     return float(a[middle]) if a.size % 2 else float((a[middle - 1] + a[middle]) / 2)
 
 
-def _sample(mask: NDArray[np.bool_], limit: int = 200_000) -> NDArray[np.bool_]:
-    """Thin a mask to at most about `limit` pixels on a regular grid (for level statistics)."""
-    step = max(1, int(np.sqrt(mask.sum() / limit)))
-    thin = np.zeros_like(mask)
-    thin[::step, ::step] = mask[::step, ::step]
-    return thin
+@dataclass(frozen=True)
+class _Scale:
+    """Each carrier's off and on level of its ratio to a reference, from the capture itself:
+    a level ``(ratio - off) / span`` is 0 off and 1 on.
+
+    Attributes
+    ----------
+    off : (K,) float32 array
+        The off cluster's centre (float32, as the ratios are).
+    span : (K,) float64 array
+        On minus off, at least 1e-6.
+    """
+
+    off: NDArray[np.float32]
+    span: NDArray[np.float64]
+
+    @classmethod
+    def of(cls, amplitude: NDArray[np.float32], carriers: list[int], reference: NDArray[np.float32],
+           mask: NDArray[np.bool_], limit: int = 200_000) -> _Scale:
+        """Two-means levels of ``amplitude[n] / reference`` for each carrier `n`, over the pixels
+        of `mask` thinned to at most about `limit` on a regular grid; the carriers in threads."""
+        step = max(1, int(np.sqrt(mask.sum() / limit)))
+        grid = mask[::step, ::step]
+        ref = reference[::step, ::step][grid]
+        ratios = [amplitude[n, ::step, ::step][grid] / ref for n in carriers]
+        with ThreadPoolExecutor(min(len(ratios), default_workers())) as pool:
+            clusters = list(pool.map(two_means, ratios))
+        return cls(off=np.array([off for off, _ in clusters], dtype=np.float32),
+                   span=np.array([max(on - off, 1e-6) for off, on in clusters]))
 
 
 def _dc_floor(dc: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -107,15 +133,24 @@ def _dc_floor(dc: NDArray[np.float32]) -> NDArray[np.float32]:
     return np.maximum(dc, 0.02 * float(np.percentile(dc[::4, ::4], 99)) + 1e-6)
 
 
-def _levels(ratio: NDArray[np.floating], sample: NDArray[np.bool_]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """Per-carrier ratios mapped to 0 (off cluster) .. 1 (on cluster) of `sample`; also the spans."""
-    levels = np.empty(ratio.shape, dtype=np.float32)
-    spans = np.empty(ratio.shape[0])
-    for n in range(ratio.shape[0]):
-        off, on = two_means(ratio[n][sample])
-        spans[n] = max(on - off, 1e-6)
-        levels[n] = (ratio[n] - off) / spans[n]
-    return levels, spans
+@numba.njit(cache=True, nogil=True)
+def _lit_rows(amplitude: NDArray[np.float32], carriers: NDArray[np.intp], dc: NDArray[np.float32],
+              scale_off: NDArray[np.float32], scale_span: NDArray[np.float64], min_modulation: np.float32,
+              noise: NDArray[np.float32], snr_factor: np.float32, rows: NDArray[np.intp], lit: NDArray[np.bool_]) -> None:
+    """`_lit` for the given rows; `noise` of shape (0, 0) when there is none."""
+    with_noise = noise.shape[0] > 0
+    for y in rows:
+        for x in range(dc.shape[1]):
+            strongest, top = np.float32(-np.inf), np.float32(-np.inf)
+            for i in range(carriers.size):
+                a = amplitude[carriers[i], y, x]
+                level = np.float32(np.float64(a / dc[y, x] - scale_off[i]) / scale_span[i])
+                strongest = max(strongest, level)
+                top = max(top, a)
+            ok = strongest >= min_modulation
+            if with_noise:
+                ok = ok and top >= snr_factor * noise[y, x]
+            lit[y, x] = ok
 
 
 def _lit(demod: Demodulated, spec: PatternSpec, dc: NDArray[np.float32], min_modulation: float,
@@ -128,12 +163,60 @@ def _lit(demod: Demodulated, spec: PatternSpec, dc: NDArray[np.float32], min_mod
     `min_modulation` on that scale and stands `2 * min_snr` noise deviations above zero.
     """
     carriers = [spec.bits] if spec.pilot is not None else list(range(spec.bits))
-    ratio = demod.amplitude[carriers] / dc[None]
-    levels, _ = _levels(ratio, _sample(np.isfinite(ratio[0])))
-    lit = levels.max(axis=0) >= min_modulation
-    if demod.noise is not None:
-        lit &= demod.amplitude[carriers].max(axis=0) >= 2 * min_snr * demod.noise
+    scale = _Scale.of(demod.amplitude, carriers, dc, np.isfinite(demod.amplitude[carriers[0]] / dc))
+    lit = np.empty(dc.shape, dtype=bool)
+    noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
+    over_rows(lambda rows: _lit_rows(demod.amplitude, np.array(carriers, dtype=np.intp), dc, scale.off, scale.span,
+                                     np.float32(min_modulation), noise, np.float32(2 * min_snr), rows, lit), dc.shape[0])
     return lit
+
+
+@numba.njit(cache=True, nogil=True)
+def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32], scale_off: NDArray[np.float32],
+                 scale_span: NDArray[np.float64], stripe_of_code: NDArray[np.int64], lit: NDArray[np.bool_],
+                 residual: NDArray[np.float32], noise: NDArray[np.float32], half_confidence: np.float32,
+                 min_snr: np.float32, max_residual: np.float32, stripe_borders: bool, rows: NDArray[np.intp],
+                 levels: NDArray[np.float32], stripe: NDArray[np.int64], confidence: NDArray[np.float32],
+                 valid: NDArray[np.bool_]) -> None:
+    """Bit levels, Gray decoding and the per-pixel validity tests of `decode`, for the given
+    rows (see `decode` for the tests; `noise` of shape (0, 0) when there is none)."""
+    bits = scale_off.size
+    with_noise = noise.shape[0] > 0
+    for y in rows:
+        for x in range(reference.shape[1]):
+            ref = reference[y, x]
+            code, unclear, first_unclear, any_on = 0, 0, -1, False
+            least = np.float32(np.inf)
+            for n in range(bits):
+                level = np.float32(np.float64(amplitude[n, y, x] / ref - scale_off[n]) / scale_span[n])
+                levels[n, y, x] = level
+                on = level >= 0.5
+                code <<= 1
+                if on:
+                    code |= 1
+                    any_on = True
+                margin = abs(level - np.float32(0.5))
+                if margin < least or np.isnan(margin):  # NaN sticks, as in a numpy min
+                    least = margin
+                clear = margin >= half_confidence
+                if with_noise:
+                    clear = clear and np.float64(margin) * scale_span[n] * np.float64(ref) >= min_snr * noise[y, x]
+                if not clear:
+                    unclear += 1
+                    if first_unclear < 0:
+                        first_unclear = n
+            s = stripe_of_code[code]
+            settled = unclear == 0
+            if stripe_borders and unclear == 1:
+                # one unclear bit whose flip gives the neighbouring stripe: a pixel on a stripe
+                # border (Gray code neighbours differ in one bit), off by at most one stripe
+                other = stripe_of_code[code ^ (1 << (bits - 1 - first_unclear))]
+                settled = other >= 0 and abs(other - s) == 1
+            modelled = residual[y, x] <= max_residual or not any_on
+            stripe[y, x] = s
+            c = np.float32(2) * least
+            confidence[y, x] = np.float32(0) if c < 0 else (np.float32(1) if c > 1 else c)
+            valid[y, x] = lit[y, x] and s >= 0 and modelled and settled
 
 
 def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: NDArray[np.float32], spec: PatternSpec,
@@ -179,21 +262,32 @@ def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: 
 
 
 @numba.njit(cache=True, nogil=True)
-def _neighbour_agreement(stripe: NDArray[np.int32], radius: int, rows: NDArray[np.intp], agree: NDArray[np.int32],
-                         total: NDArray[np.int32]) -> None:
-    """For the given rows: valid pixels (stripe >= 0) in each pixel's ``(2 radius + 1)**2`` box
-    (`total`), and how many of them are within one stripe of the pixel's own (`agree`)."""
+def _agreeing_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], radius: int, min_share: float,
+                   rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
+    """`agrees_with_neighbours` for the given rows.
+
+    The box slides along the row with a histogram of the valid stripes inside it
+    (``hist[s + 1]`` counts stripe ``s >= 0``): one column enters and one leaves per pixel,
+    so the cost per pixel is two box heights, not a box area."""
     h, w = stripe.shape
+    hist = np.zeros(max(stripe.max(), 0) + 3, dtype=np.int64)
     for y in rows:
-        for x in range(w):
-            own, n_agree, n_total = stripe[y, x], 0, 0
-            for yy in range(max(y - radius, 0), min(y + radius + 1, h)):
-                for xx in range(max(x - radius, 0), min(x + radius + 1, w)):
-                    other = stripe[yy, xx]
-                    if other >= 0:
-                        n_total += 1
-                        n_agree += abs(other - own) <= 1
-            agree[y, x], total[y, x] = n_agree, n_total
+        top, bottom = max(y - radius, 0), min(y + radius + 1, h)
+        hist[:] = 0
+        total = 0
+        for x in range(-radius, w):
+            for column, step in ((x + radius, 1), (x - radius - 1, -1)):  # entering, leaving
+                if 0 <= column < w:
+                    for yy in range(top, bottom):
+                        other = stripe[yy, column]
+                        if valid[yy, column] and other >= 0:
+                            hist[other + 1] += step
+                            total += step
+            if x >= 0:
+                own = stripe[y, x]
+                # stripes own - 1, own, own + 1 (hist[0] would be stripe -1, never counted)
+                agree = (hist[own] if own >= 1 else 0) + hist[own + 1] + hist[own + 2] if own >= -1 else 0
+                out[y, x] = valid[y, x] and agree >= min_share * total
 
 
 def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_], *, radius: int = 3,
@@ -202,36 +296,47 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
 
     On any surface the stripe index varies slowly across the camera image, except at depth
     edges, where each side still agrees with itself; an isolated decision that disagrees with
-    at least `min_share` of the valid pixels in its ``(2 radius + 1)**2`` box is a decoding
-    error (a flipped high bit), and would be a point far off the surface.  The boxes are
-    counted by a compiled kernel, rows in parallel threads.
+    at least `min_share` of the valid pixels (with a stripe >= 0) in its ``(2 radius + 1)**2``
+    box is a decoding error (a flipped high bit), and would be a point far off the surface.
+    The boxes are counted by a compiled kernel, rows in parallel threads.
 
     Parameters
     ----------
     stripe : (H, W) int array
     valid : (H, W) bool array
     """
-    s = np.where(valid, stripe, -10).astype(np.int32)
-    agree, total = np.empty(s.shape, dtype=np.int32), np.empty(s.shape, dtype=np.int32)
-    workers = default_workers()
-    with ThreadPoolExecutor(workers) as pool:
-        list(pool.map(lambda rows: _neighbour_agreement(s, radius, rows, agree, total),
-                      np.array_split(np.arange(s.shape[0]), 4 * workers)))
-    return valid & (agree >= min_share * total)
-
-
-def _shift(a: NDArray, offset: int, axis: int, fill: object) -> NDArray:
-    """`a` moved by `offset` along `axis` (out[i] = a[i + offset]), `fill` where it runs out."""
-    out = np.full_like(a, fill)
-    src = [slice(None)] * a.ndim
-    dst = [slice(None)] * a.ndim
-    n = a.shape[axis]
-    if offset >= 0:
-        src[axis], dst[axis] = slice(offset, n), slice(0, n - offset)
-    else:
-        src[axis], dst[axis] = slice(0, n + offset), slice(-offset, n)
-    out[tuple(dst)] = a[tuple(src)]
+    s = np.ascontiguousarray(stripe, dtype=np.int64)
+    out = np.empty(s.shape, dtype=bool)
+    over_rows(lambda rows: _agreeing_rows(s, np.ascontiguousarray(valid), radius, float(min_share), rows, out),
+              s.shape[0])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], levels: NDArray[np.float32],
+                 codes: NDArray[np.int64], dy: int, dx: int, rows: NDArray[np.intp], out: NDArray[np.int64]) -> None:
+    """`refine_borders` for the given rows; the pixels compared are ``(y -+ dy, x -+ dx)``."""
+    h, w = stripe.shape
+    bits = levels.shape[0]
+    for y in rows:
+        for x in range(w):
+            out[y, x] = stripe[y, x]
+            if not valid[y, x]:
+                continue
+            yb, xb, ya, xa = y - dy, x - dx, y + dy, x + dx
+            if yb < 0 or xb < 0 or ya >= h or xa >= w or not (valid[yb, xb] and valid[ya, xa]):
+                continue
+            own, before, after = stripe[y, x], stripe[yb, xb], stripe[ya, xa]
+            if before < 0 or after < 0 or abs(before - after) != 1 or (own != before and own != after):
+                continue
+            changed, high = codes[before] ^ codes[after], 0
+            while changed > 1:
+                changed >>= 1
+                high += 1
+            bit = min(max(bits - 1 - high, 0), bits - 1)
+            level, level_before, level_after = levels[bit, y, x], levels[bit, yb, xb], levels[bit, ya, xa]
+            if np.isfinite(level_before) and np.isfinite(level_after):
+                out[y, x] = before if abs(level - level_before) <= abs(level - level_after) else after
 
 
 def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels: NDArray[np.float32],
@@ -243,38 +348,25 @@ def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels
     there; the pixel belongs to the side whose level its own is nearer to.  The frame-wide
     0.5 threshold moves the border by several pixels where the local levels differ from the
     frame's (ambient light, roll-off); this puts it back where the blurred step is half way.
+
+    Parameters
+    ----------
+    stripe : (H, W) int array
+    valid : (H, W) bool array
+    levels : (K, H, W) float32 array
+        Bit levels (`Decoded.levels`).
     """
-    axis = 0 if spec.orientation == "rows" else 1
-    s = np.where(valid, stripe, -10).astype(np.int64)
-    before, after = _shift(s, -reach, axis, -10), _shift(s, reach, axis, -10)
-    border = valid & (before >= 0) & (after >= 0) & (np.abs(before - after) == 1) & ((s == before) | (s == after))
-    if not border.any():
-        return stripe.astype(np.int64)
-    codes = stripe_codes(spec)
-    changed = codes[np.clip(before, 0, None)] ^ codes[np.clip(after, 0, None)]
-    bit = spec.bits - 1 - np.floor(np.log2(np.maximum(changed, 1))).astype(np.int64)
-    bit = np.clip(bit, 0, spec.bits - 1)
-    own = np.take_along_axis(levels, bit[None], axis=0)[0]
-    level_before = np.take_along_axis(_shift(levels, -reach, axis + 1, np.nan), bit[None], axis=0)[0]
-    level_after = np.take_along_axis(_shift(levels, reach, axis + 1, np.nan), bit[None], axis=0)[0]
-    nearer_before = np.abs(own - level_before) <= np.abs(own - level_after)
-    decided = border & np.isfinite(level_before) & np.isfinite(level_after)
-    return np.where(decided, np.where(nearer_before, before, after), stripe).astype(np.int64)
+    dy, dx = (reach, 0) if spec.orientation == "rows" else (0, reach)
+    stripe = np.ascontiguousarray(stripe, dtype=np.int64)
+    out = np.empty_like(stripe)
+    over_rows(lambda rows: _refine_rows(stripe, np.ascontiguousarray(valid), np.ascontiguousarray(levels),
+                                        stripe_codes(spec), dy, dx, rows, out), stripe.shape[0])
+    return out
 
 
-def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclear: NDArray[np.bool_],
-                      spec: PatternSpec) -> NDArray[np.bool_]:
-    """True where exactly one bit is unclear and flipping it gives an adjacent stripe.
-
-    Such a pixel sits on the border of two neighbouring stripes (Gray code neighbours differ
-    in one bit), so either decision is off by at most one stripe: keep it.  A single unclear
-    bit whose flip jumps further is a real ambiguity: drop the pixel.
-    """
-    single = unclear.sum(axis=0) == 1
-    which = np.argmax(unclear, axis=0)
-    flipped = code ^ (1 << (spec.bits - 1 - which))
-    other = code_to_stripe(flipped, spec)
-    return single & (other >= 0) & (np.abs(other - stripe) == 1)
+def _stripe_of_code(spec: PatternSpec) -> NDArray[np.int64]:
+    """Stripe index of every ``spec.bits``-bit code, -1 for the codes never projected."""
+    return code_to_stripe(np.arange(1 << spec.bits), spec).astype(np.int64)
 
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
@@ -300,7 +392,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         when only one is not and flipping it gives the neighbouring stripe (a pixel on a
         stripe border, where either answer is off by at most one stripe).
     max_residual : float
-        Pixels whose window the carrier model explains worse than this are invalid.
+        Pixels whose window the carrier model explains worse than this are invalid (except
+        those with every bit off: the residual is relative to the AC energy, which the lit
+        all-zero stripe does not have).
     max_misfit : float
         Pixels whose own neighbourhood the window's model mispredicts by more than this
         fraction of the DC are invalid (see `Demodulated.misfit`).
@@ -319,25 +413,18 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     """
     bits = spec.bits
     dc = _dc_floor(demod.dc)
-    reference = demod.amplitude[bits] if spec.pilot is not None else dc
-    ratio = demod.amplitude[:bits] / np.maximum(reference, 1e-6)[None]
+    reference = np.maximum(demod.amplitude[bits] if spec.pilot is not None else dc, np.float32(1e-6))
     lit = _lit(demod, spec, dc, min_modulation, min_snr)
-    levels, spans = _levels(ratio, _sample(lit))
-    on_bits = levels >= 0.5
-    code = bits_to_code(on_bits)
-    stripe = code_to_stripe(code, spec)
-    margin = np.abs(levels - 0.5)
-    confidence = np.clip(2 * margin.min(axis=0), 0, 1).astype(np.float32)
-    clear = margin >= 0.5 * min_confidence
-    if demod.noise is not None:
-        clear &= margin * spans[:, None, None] * np.maximum(reference, 1e-6) >= min_snr * demod.noise
-    unclear = (~clear).sum(axis=0)
-    # The residual is relative to the AC energy, which the lit all-zero stripe does not have.
-    modelled = (demod.residual <= max_residual) | ~on_bits.any(axis=0)
-    settled = unclear == 0
-    if stripe_borders:
-        settled |= _flip_is_adjacent(code, stripe, ~clear, spec)
-    valid = lit & (stripe >= 0) & modelled & settled
+    scale = _Scale.of(demod.amplitude, list(range(bits)), reference, lit)
+    levels = np.empty((bits, *dc.shape), dtype=np.float32)
+    stripe = np.empty(dc.shape, dtype=np.int64)
+    confidence = np.empty(dc.shape, dtype=np.float32)
+    valid = np.empty(dc.shape, dtype=bool)
+    noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
+    over_rows(lambda rows: _decode_rows(
+        demod.amplitude, reference, scale.off, scale.span, _stripe_of_code(spec), lit, demod.residual, noise,
+        np.float32(0.5 * min_confidence), np.float32(min_snr), np.float32(max_residual), stripe_borders, rows,
+        levels, stripe, confidence, valid), dc.shape[0])
     if spec.pilot is None and not spec.skip_zero_code:
         # Modulated pixels have at least one bit on; add the lit all-zero stripe.
         zero = _zero_stripe(np.where(valid, stripe, -1), ~lit, demod.dc, spec, min_dc=zero_code_dc)
@@ -349,6 +436,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     if neighbour_radius:
         valid = agrees_with_neighbours(stripe, valid, radius=neighbour_radius)
     stripe = np.where(valid, stripe, -1).astype(np.int16)
-    proj_map = stripe_center(stripe, spec).astype(np.float32)
+    centres = np.append(stripe_center(np.arange(spec.stripes), spec), np.nan).astype(np.float32)
+    proj_map = centres[stripe]  # stripe -1 takes the NaN at the end
     return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit,
                    confidence=np.where(lit, confidence, 0).astype(np.float32), levels=levels)

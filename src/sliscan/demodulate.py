@@ -25,14 +25,13 @@ Frequencies are in cycles per camera pixel along the carrier direction (camera `
 from __future__ import annotations
 
 import contextlib
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from sliscan._threads import default_workers, over_rows
 from sliscan._validate import InputError, check_image
 from sliscan.types import PatternSpec
 
@@ -106,23 +105,6 @@ class Demodulated:
     residual: NDArray[np.float32]
     misfit: NDArray[np.float32] | None = None
     noise: NDArray[np.float32] | None = None
-
-
-#: Environment variable capping the threads of the parallel stages (set by `sliscan.batch` in
-#: each worker process, so that worker processes sharing a machine do not oversubscribe it).
-THREADS_ENV = "SLISCAN_THREADS"
-
-
-def available_cpus() -> int:
-    """The CPUs this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
-def default_workers() -> int:
-    """Threads for the parallel stages: ``$SLISCAN_THREADS`` if set (a positive integer), else
-    the CPUs this process may run on."""
-    cap = os.environ.get(THREADS_ENV, "")
-    return int(cap) if cap.isdigit() and int(cap) > 0 else available_cpus()
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -521,9 +503,8 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     omegas = np.ascontiguousarray(2 * np.pi * carriers.line_frequencies(slice(0, h)), dtype=np.float64)
     unexplained, var, dc, misfit = (np.empty((h, w), dtype=np.float32) for _ in range(4))
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
-    with ThreadPoolExecutor(workers) as pool:
-        list(pool.map(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc,
-                                               amp, misfit), np.array_split(np.arange(h), 4 * workers)))
+    over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit),
+              h, workers)
     # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
     dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
     noise = np.sqrt(2 * unexplained / dof[:, None])

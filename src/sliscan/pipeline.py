@@ -12,9 +12,11 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
 from sliscan.decode import Decoded, decode
 from sliscan.demodulate import Carriers, Demodulated, demodulate
@@ -31,49 +33,83 @@ def texture_from_dc(dc: NDArray[np.floating]) -> NDArray[np.float32]:
     return np.clip(dc / max(top, 1e-6), 0, 1).astype(np.float32)
 
 
-def inside_projector(points: NDArray[np.floating], calibration: Calibration, direction: str) -> NDArray[np.bool_]:
-    """Which points the projector can light: finite, in front of camera and projector, and
-    projecting inside the projector's image along the direction the stripes do not code.
-
-    A wrong stripe on a pixel the projector never reached (above its frustum, in shadow)
-    otherwise triangulates to a point metres away, where the camera ray meets that stripe's
-    plane outside the projector's image.
-
-    Parameters
-    ----------
-    points : (H, W, 3) array
-        World points in mm, NaN where invalid.
-    """
-    finite = np.all(np.isfinite(points), axis=-1)
-    xyz = np.where(finite[..., None], points, 0).astype(np.float64)
-    ok = finite.copy()
-    for device in (calibration.camera, calibration.projector):
-        m = device.matrix / np.linalg.norm(device.matrix[2, :3])
-        sign = np.sign(np.linalg.det(device.matrix[:, :3]))
-        ok &= sign * (xyz @ m[2, :3] + m[2, 3]) > 0  # depth > 0
-    xp = calibration.projector.project(xyz)
-    w, h = calibration.projector.size
-    across, lines = (xp[..., 0], w) if direction == "rows" else (xp[..., 1], h)
-    margin = 0.02 * lines
-    return ok & (across > -0.5 - margin) & (across < lines - 0.5 + margin)
-
-
 def device_centre(matrix: NDArray[np.floating]) -> NDArray[np.float64]:
     """Optical centre (mm) of a 3x4 projection matrix: its right null vector."""
     _, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
     return vt[-1, :3] / vt[-1, 3]
 
 
-def triangulation_angle(points: NDArray[np.floating], calibration: Calibration) -> NDArray[np.float64]:
-    """Angle (degrees) between the camera's and the projector's rays at each point.
+@numba.njit(cache=True, nogil=True)
+def _measurable_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], depth: NDArray[np.float64],
+                     projector: NDArray[np.float64], across: int, low: float, high: float, centres: NDArray[np.float64],
+                     min_angle_deg: float, rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
+    """`measurable` for the given rows: ``depth`` holds each device's depth row (2, 4),
+    ``centres`` the camera's and the projector's centre (2, 3)."""
+    for y in rows:
+        for x in range(points.shape[1]):
+            ok = valid[y, x]
+            p = points[y, x]
+            if ok:
+                ok = np.isfinite(p[0]) and np.isfinite(p[1]) and np.isfinite(p[2])
+            for device in range(2):
+                if ok:
+                    ok = depth[device, 0] * p[0] + depth[device, 1] * p[1] + depth[device, 2] * p[2] + depth[device, 3] > 0
+            if ok:
+                h = projector[across, 0] * p[0] + projector[across, 1] * p[1] + projector[across, 2] * p[2]
+                w = projector[2, 0] * p[0] + projector[2, 1] * p[1] + projector[2, 2] * p[2]
+                coordinate = (h + projector[across, 3]) / (w + projector[2, 3])
+                ok = low < coordinate < high
+            if ok:
+                ab = aa = bb = 0.0
+                for j in range(3):
+                    a, b = p[j] - centres[0, j], p[j] - centres[1, j]
+                    ab, aa, bb = ab + a * b, aa + a * a, bb + b * b
+                cos = min(max(ab / (np.sqrt(aa) * np.sqrt(bb)), -1.0), 1.0)
+                ok = np.degrees(np.arccos(cos)) >= min_angle_deg
+            out[y, x] = ok
 
-    Depth precision falls with this angle, and a wrong stripe on a ray almost parallel to its
-    plane lands metres away: points under a few degrees are not measurements.
+
+def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibration: Calibration, direction: str, *,
+               min_angle_deg: float) -> NDArray[np.bool_]:
+    """Valid points that are measurements: finite, in front of the camera and the projector,
+    projecting inside the projector's image along the direction the stripes do not code, and
+    seen by camera and projector rays meeting at `min_angle_deg` or more.
+
+    A wrong stripe on a pixel the projector never reached (above its frustum, in shadow)
+    otherwise triangulates to a point metres away, where the camera ray meets that stripe's
+    plane outside the projector's image; and depth precision falls with the angle between the
+    rays, so a wrong stripe on a ray almost parallel to its plane lands metres away too.  The
+    projector's image counts with a margin of 2 % of its lines.  One compiled pass, rows in
+    threads.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float32 array
+        World points in mm, NaN where invalid.
+    valid : (H, W) bool array
+        The points to test; the others are not measurable.
+    direction : {"rows", "columns"}
+        The projector coordinate the stripes code.
+
+    Returns
+    -------
+    (H, W) bool array
     """
-    a = points - device_centre(calibration.camera.matrix)
-    b = points - device_centre(calibration.projector.matrix)
-    cos = np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    depth = []
+    for device in (calibration.camera, calibration.projector):
+        m = device.matrix / np.linalg.norm(device.matrix[2, :3])
+        depth.append(np.sign(np.linalg.det(device.matrix[:, :3])) * m[2])
+    w, h = calibration.projector.size
+    across, lines = (0, w) if direction == "rows" else (1, h)
+    margin = 0.02 * lines
+    centres = np.array([device_centre(calibration.camera.matrix), device_centre(calibration.projector.matrix)])
+    out = np.empty(valid.shape, dtype=bool)
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    over_rows(lambda rows: _measurable_rows(pts, np.ascontiguousarray(valid), np.array(depth),
+                                            np.ascontiguousarray(calibration.projector.matrix), across,
+                                            -0.5 - margin, lines - 0.5 + margin, centres, float(min_angle_deg),
+                                            rows, out), valid.shape[0])
+    return out
 
 
 def baseline_direction(calibration: Calibration) -> str:
@@ -138,7 +174,7 @@ class Scanner:
         Detect the carriers in the first frame and reuse them for later frames.
     min_angle_deg : float
         Points whose camera and projector rays meet at less than this angle are dropped
-        (`triangulation_angle`).
+        (`measurable`).
     remove_speckles : bool
         Drop small regions of the projector map that jump away from their neighbours (wrong
         codes: `sliscan.outliers.remove_speckles`, with `default_max_jump` and
@@ -239,19 +275,12 @@ class Scanner:
 
     def _measurable(self, points: NDArray[np.float32], proj_map: NDArray[np.float32], valid: NDArray[np.bool_],
                     direction: str) -> NDArray[np.bool_]:
-        """`valid` less the points the projector cannot light (`inside_projector`), seen at
-        under `min_angle_deg` (`triangulation_angle`) or, with `remove_speckles`, in small
+        """`valid` less the points that are not measurements (`measurable`: outside the
+        projector's light, seen at under `min_angle_deg`) or, with `remove_speckles`, in small
         regions that jump away from their neighbours; sets the dropped points to NaN.
 
-        `proj_map` holds the projector coordinate along `direction` ("rows" or "columns").
-        Only the valid pixels' points are tested."""
-        index = np.flatnonzero(valid)
-        candidates = points.reshape(-1, 3)[index]
-        with np.errstate(invalid="ignore"):
-            keep = (inside_projector(candidates, self.calibration, direction)
-                    & (triangulation_angle(candidates, self.calibration) >= self.min_angle_deg))
-        valid = np.zeros(valid.shape, dtype=bool)
-        valid.ravel()[index[keep]] = True
+        `proj_map` holds the projector coordinate along `direction` ("rows" or "columns")."""
+        valid = measurable(points, valid, self.calibration, direction, min_angle_deg=self.min_angle_deg)
         if self.remove_speckles:
             valid = remove_speckles(proj_map, valid, lines=self.spec.lines(direction),
                                     max_jump=default_max_jump(self.spec, direction))

@@ -14,7 +14,6 @@ solved for every pixel at once with the adjugate (Cramer's rule) in float64.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numba
@@ -22,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sliscan._validate import InputError
-from sliscan.demodulate import default_workers
+from sliscan._threads import default_workers, over_rows
 from sliscan.types import ORIENTATIONS, Calibration, Device
 
 # |det C| / (|c1| |c2| |c3|) is the volume spanned by the three unit plane normals (1 when they
@@ -191,9 +190,8 @@ class Triangulator:
             mask &= valid
         xyz_w = np.empty((*self.shape, 3), dtype=np.float32)
         values = np.ascontiguousarray(proj_map if proj_map.dtype.kind == "f" else proj_map.astype(np.float64))
-        with ThreadPoolExecutor(self.workers) as pool:
-            list(pool.map(lambda rows: _evaluate_rows(self._coef, self._centre, values, mask, self._quad, rows, xyz_w),
-                          np.array_split(np.arange(self.shape[0]), 4 * self.workers)))
+        over_rows(lambda rows: _evaluate_rows(self._coef, self._centre, values, mask, self._quad, rows, xyz_w),
+                  self.shape[0], self.workers)
         return xyz_w
 
 
