@@ -94,7 +94,7 @@ def main() -> None:
         return
     rows = []
     header = (f"{'pattern':22s} {'decoder':9s} {'scene':7s} {'albedo':8s} {'seed':>4s} {'stripe%':>8s} "
-              f"{'complete%':>9s} {'outlier%':>8s} {'rms mm':>8s} {'med mm':>7s} {'oracle med':>10s} {'s':>5s}")
+              f"{'complete%':>9s} {'outlier%':>8s} {'gross%':>6s} {'rms mm':>8s} {'med mm':>7s} {'oracle med':>10s} {'s':>5s}")
     print(header)
     keep = [p for p in args.patterns.split(",") if p]
     for name, spec in pattern_specs(projector, args.quick).items():
@@ -117,7 +117,7 @@ def main() -> None:
                         rows.append(row)
                         print(f"{name:22s} {method:9s} {scene_name:7s} {albedo:8s} {seed:4d} "
                               f"{100 * acc.stripe_accuracy:8.2f} {100 * acc.completeness:9.2f} "
-                              f"{100 * acc.outliers:8.2f} {acc.rms_mm:8.2f} {acc.median_mm:7.2f} "
+                              f"{100 * acc.outliers:8.2f} {100 * acc.gross_outliers:6.3f} {acc.rms_mm:8.2f} {acc.median_mm:7.2f} "
                               f"{acc.oracle_median_mm:10.2f} {seconds:5.1f}", flush=True)
     Path(args.json).write_text(json.dumps({"camera": camera, "projector": projector, "rows": rows}, indent=1))
     if args.markdown:
@@ -165,8 +165,7 @@ def compare(rig: simulate.Rig, projector: tuple[int, int], args: argparse.Namesp
                     t0 = time.perf_counter()
                     result = Scanner(spec, rig.calibration).scan(frames)
                     seconds = time.perf_counter() - t0
-                    gross = np.where(capture.truth.lit, stripe_depth(capture.truth, yardstick, rig.calibration), 0)
-                    acc = surface_accuracy(result, capture.truth, gross)
+                    acc = surface_accuracy(result, capture.truth, stripe_depth(capture.truth, yardstick, rig.calibration))
                     radius, rejected = (sphere_fit(result, capture.truth, (0.0, 0.0, 800.0), 122.555)
                                         if scene_name == "sphere" else (float("nan"), float("nan")))
                     row = dict(method=name, frames=spec.frame_count, scene=scene_name, conditions=cond_name,
@@ -210,12 +209,13 @@ def render_cached(folder: str | None, key: str, render) -> simulate.Capture:
 
 def markdown_table(rows: list[dict]) -> str:
     """The rows as the README's Markdown table."""
-    lines = ["| pattern | decoder | scene | albedo | stripe accuracy | completeness | outliers | RMS (mm) "
-             "| median (mm) | oracle median (mm) | scan (s) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| pattern | decoder | scene | albedo | stripe accuracy | completeness | outliers | gross outliers "
+             "| RMS (mm) | median (mm) | oracle median (mm) | scan (s) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         decoder = "sliscan window" if r["decoder"] == "window" else "thesis band-pass"
         lines.append(f"| {r['pattern']} | {decoder} | {r['scene']} | {r['albedo']} | {100 * r['stripe_accuracy']:.1f} % "
-                     f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {r['rms_mm']:.1f} "
+                     f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {100 * r['gross_outliers']:.3f} % "
+                     f"| {r['rms_mm']:.1f} "
                      f"| {r['median_mm']:.2f} | {r['oracle_median_mm']:.2f} | {r['seconds']:.1f} |")
     return "\n".join(lines) + "\n"
 

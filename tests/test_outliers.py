@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sliscan._validate import InputError
-from sliscan.outliers import default_min_region, remove_speckles
+from sliscan.outliers import default_min_region, remove_narrow_runs, remove_speckles
 
 
 def _two_surfaces(rng):
@@ -57,3 +57,43 @@ def test_bad_parameters_are_refused(kwargs):
 def test_shape_mismatch_is_refused():
     with pytest.raises(InputError, match="same shape"):
         remove_speckles(np.zeros((4, 4)), np.ones((4, 5), bool), lines=768, max_jump=1)
+
+
+def _edge_with_a_sliver(rng):
+    """A 40x400 map: two surfaces meeting at a depth edge (column 200), and between them a
+    30-pixel sliver of a wrong code (as a window straddling the edge decodes it)."""
+    proj = np.tile(np.where(np.arange(400) < 200, 100.0, 160.0), (40, 1)).astype(np.float32)
+    proj += rng.normal(0, 0.3, proj.shape).astype(np.float32)
+    proj[:, 185:215] = 400
+    return proj
+
+
+def test_narrow_runs_across_a_depth_edge_are_dropped(rng):
+    proj = _edge_with_a_sliver(rng)
+    keep = remove_narrow_runs(proj, np.ones(proj.shape, bool), max_jump=10, window=60)
+    assert not keep[:, 185:215].any() and keep[:, :185].all() and keep[:, 215:].all()
+
+
+def test_narrow_runs_that_agree_with_a_side_or_are_wide_or_alone_are_kept(rng):
+    proj = _edge_with_a_sliver(rng)
+    valid = np.ones(proj.shape, bool)
+    proj[:10, 185:215] = 100           # rows 0-9: the sliver continues the left surface
+    kept = remove_narrow_runs(proj, valid, max_jump=10, window=30)   # a window of 30: not narrower
+    assert kept.all()
+    valid[20:30, 140:185] = valid[20:30, 215:260] = False             # rows 20-29: nothing within a window
+    keep = remove_narrow_runs(proj, valid, max_jump=10, window=40)
+    assert keep[:10].all() and keep[20:30, 185:215].all() and not keep[30:, 185:215].any()
+
+
+def test_narrow_runs_along_columns_are_the_transpose(rng):
+    proj = _edge_with_a_sliver(rng)
+    valid = rng.random(proj.shape) < 0.97
+    rows = remove_narrow_runs(proj, valid, max_jump=10, window=60)
+    np.testing.assert_array_equal(remove_narrow_runs(proj.T, valid.T, max_jump=10, window=60, axis=0), rows.T)
+
+
+@pytest.mark.parametrize("kwargs", [dict(max_jump=0, window=10), dict(max_jump=1, window=0),
+                                    dict(max_jump=1, window=10, axis=2)])
+def test_narrow_runs_bad_parameters_are_refused(kwargs):
+    with pytest.raises(InputError):
+        remove_narrow_runs(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)

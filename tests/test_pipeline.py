@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sliscan import InputError, PatternSpec, Scanner, ScanResult, patterns, simulate
-from sliscan.evaluate import accuracy, oracle_points, true_stripes
+from sliscan.evaluate import accuracy, oracle_points, stripe_depth, true_stripes
 from sliscan.patterns import stripe_center
 from sliscan.pipeline import baseline_direction, device_centre, measurable
 from sliscan.sequences import decode_frames, render_frames
@@ -88,12 +88,16 @@ def test_accuracy_of_a_perfect_decoder_is_the_oracle(small_rig):
     assert 5 < acc.oracle_median_mm < 60
 
 
-def test_accuracy_counts_a_shifted_stripe_as_wrong(small_rig):
+@pytest.mark.parametrize("shift, outliers, gross", [(2, 1.0, 0.0), (5, 1.0, 1.0)])
+def test_accuracy_counts_a_shifted_stripe_as_wrong(small_rig, shift, outliers, gross):
+    """Every point `shift` stripes off: an outlier (> 1 stripe's depth) either way; a gross
+    outlier (projector coordinate > 3 stripes off) at 5 stripes, not at 2 (2 +- 0.5 stripes
+    with the staircase)."""
     spec = patterns.thesis_spec((1024, 768))
     capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(spec),
                               simulate.Conditions(supersample=1, seed=0))
     perfect = _perfect_result(capture.truth, spec, small_rig.calibration)
-    stripe = np.where(perfect.stripe >= 3, perfect.stripe - 3, -1).astype(np.int16)  # 3 stripes off
+    stripe = np.where(perfect.stripe >= shift, perfect.stripe - shift, -1).astype(np.int16)
     valid = stripe >= 0
     from sliscan.reconstruct import triangulate
     points = triangulate(stripe_center(stripe, spec), small_rig.calibration, valid=valid)
@@ -101,7 +105,36 @@ def test_accuracy_counts_a_shifted_stripe_as_wrong(small_rig):
                          stripe=stripe, confidence=perfect.confidence)
     acc = accuracy(shifted, capture.truth, spec, small_rig.calibration)
     assert acc.stripe_accuracy == 0.0 and acc.wrong_stripe == 1.0
-    assert acc.outliers > 0.99  # three stripes off is farther than one stripe's depth
+    assert acc.outliers == pytest.approx(outliers, abs=0.01) and acc.gross_outliers == pytest.approx(gross, abs=0.01)
+
+
+def test_points_in_shadow_are_judged_by_their_own_stripe_depth(small_rig):
+    """A valid point on a pixel the projector does not light (a cast shadow of the steps) is
+    an outlier only if it is off the surface: the yardstick is defined there too."""
+    spec = patterns.thesis_spec((1024, 768))
+    capture = simulate.render(small_rig, simulate.steps_scene(), patterns.render_pattern(spec),
+                              simulate.Conditions(supersample=1, seed=0))
+    truth = capture.truth
+    shadow = truth.surface & ~truth.lit & np.isfinite(truth.proj[..., 1])
+    assert shadow.sum() > 1000
+    quantum = stripe_depth(truth, spec, small_rig.calibration)
+    assert np.all(quantum[shadow] > 0)
+    # exact points in the shadow plus the oracle elsewhere: no outliers
+    oracle = _perfect_result(truth, spec, small_rig.calibration)
+    points = np.where(shadow[..., None], truth.points, oracle.points)
+    exact = ScanResult(points=points, valid=oracle.valid | shadow, texture=oracle.texture, proj_map=oracle.proj_map,
+                       stripe=oracle.stripe, confidence=oracle.confidence)
+    acc = accuracy(exact, truth, spec, small_rig.calibration)
+    assert acc.outliers == 0.0
+    assert acc.gross_outliers == 0.0
+    # moved 5 stripes along the ray (triangulated 5 stripes off): gross outliers, one per shadow pixel
+    from sliscan.reconstruct import triangulate
+    off = triangulate(truth.proj[..., 1] + 5 * 48, small_rig.calibration, valid=shadow)
+    moved = np.where(shadow[..., None], off, oracle.points)
+    acc = accuracy(ScanResult(points=moved.astype(np.float32), valid=exact.valid, texture=oracle.texture,
+                              proj_map=oracle.proj_map, stripe=oracle.stripe, confidence=oracle.confidence),
+                   truth, spec, small_rig.calibration)
+    assert acc.gross_outliers == pytest.approx(shadow.sum() / exact.valid.sum())
 
 
 # ------------------------------------------------------------------------------------ multi-frame patterns

@@ -1417,6 +1417,7 @@ def _accuracy_table(results: dict[str, tuple[evaluate.Accuracy, float]]) -> Tabl
         ("stripe accuracy (% of lit px)", lambda a, s: f"{a.stripe_accuracy:.1%}"),
         ("completeness (% of lit px)", lambda a, s: f"{a.completeness:.1%}"),
         ("outliers (% of points)", lambda a, s: f"{a.outliers:.2%}"),
+        ("gross outliers (% of points)", lambda a, s: f"{a.gross_outliers:.2%}"),
         ("RMS error (mm)", lambda a, s: f"{a.rms_mm:.2f}"),
         ("median error (mm)", lambda a, s: f"{a.median_mm:.2f}"),
         ("oracle RMS error (mm)", lambda a, s: f"{a.oracle_rms_mm:.2f}"),

@@ -8,7 +8,10 @@ The figures every accuracy claim in sliscan rests on:
 * **3D error**: distance between each valid point and the true surface point of that pixel
   (mm): RMS, median, 95th percentile;
 * **outliers**: valid points farther from the truth than one stripe's depth at that pixel
-  (a wrong stripe by more than one, or a point where no lit surface was);
+  (`stripe_depth`: a wrong stripe by more than one), or where the camera sees no surface;
+* **gross outliers**: valid points whose projector coordinate (the point projected into the
+  projector) is more than three stripes from the true one, or where the camera sees no
+  surface: a wrong high bit, a point off in space rather than a blurred stripe border;
 * **oracle**: the same errors for triangulating the ground-truth stripe (the staircase of the
   code itself): what a perfect decoder of this pattern would get;
 * **fitted sphere**: centre and radius of the sphere that best fits the scan's points on a
@@ -41,6 +44,7 @@ class Accuracy:
     stripe_accuracy: float
     wrong_stripe: float
     outliers: float
+    gross_outliers: float
     rms_mm: float
     median_mm: float
     p95_mm: float
@@ -119,13 +123,19 @@ def _stats(errors: NDArray[np.float64]) -> tuple[float, float, float]:
 
 
 def stripe_depth(truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> NDArray[np.float32]:
-    """Length (mm) of the camera ray inside the true stripe of each lit pixel."""
-    stripe = true_stripes(truth, spec)
+    """Length (mm) of each camera ray inside one stripe: the band of projector lines one
+    stripe wide centred on the pixel's true projector line; the yardstick of the outliers.
+
+    Defined on every pixel whose true point the projector's lines reach (`GroundTruth.proj`
+    is finite: lit pixels, and those in shadow or at a blurred shadow border, where a scan
+    may still return a point); 0 elsewhere, so any point there is an outlier.
+    """
+    line = (truth.proj[..., 1] if spec.orientation == "rows" else truth.proj[..., 0]).astype(np.float64)
+    known = truth.surface & np.isfinite(line)
     half = 0.5 * spec.phase_lines / spec.stripes
-    centre = stripe_center(stripe, spec)
-    near = triangulate(centre - half, calibration, orientation=spec.orientation, valid=stripe >= 0)
-    far = triangulate(centre + half, calibration, orientation=spec.orientation, valid=stripe >= 0)
-    return np.linalg.norm(far - near, axis=-1).astype(np.float32)
+    near = triangulate(line - half, calibration, orientation=spec.orientation, valid=known)
+    far = triangulate(line + half, calibration, orientation=spec.orientation, valid=known)
+    return np.nan_to_num(np.linalg.norm(far - near, axis=-1), nan=0.0).astype(np.float32)
 
 
 def oracle_points(truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> NDArray[np.float32]:
@@ -150,7 +160,7 @@ class SurfaceAccuracy:
         return asdict(self)
 
 
-def surface_accuracy(result: ScanResult, truth: GroundTruth, gross_mm: float | NDArray[np.floating]) -> SurfaceAccuracy:
+def surface_accuracy(result: ScanResult, truth: GroundTruth, quantum_mm: float | NDArray[np.floating]) -> SurfaceAccuracy:
     """Completeness, outliers and 3D error of a scan against the virtual rig's ground truth.
 
     Parameters
@@ -159,23 +169,43 @@ def surface_accuracy(result: ScanResult, truth: GroundTruth, gross_mm: float | N
         The scan of a rendered capture (single- or multi-frame).
     truth : GroundTruth
         From `sliscan.simulate.render` / `render_sequence` for that capture.
-    gross_mm : float or (H, W) array
+    quantum_mm : float or (H, W) array
         A valid point farther than this from its pixel's true surface point is an outlier (so
-        is a valid point where the camera sees no surface).  `accuracy` passes one stripe's
-        depth of the composite pattern; comparisons across pattern kinds pass one yardstick
-        for all of them.
+        is any valid point where the camera sees no surface).  `accuracy` passes one stripe's
+        depth of the composite pattern (`stripe_depth`); comparisons across pattern kinds pass
+        one yardstick for all of them.
     """
     lit, valid = truth.lit, result.valid
     on_surface = valid & truth.surface
     errors = _errors(result.points, truth, on_surface)
-    far = np.zeros_like(valid)
-    far[on_surface] = errors > np.broadcast_to(np.asarray(gross_mm, dtype=np.float64), valid.shape)[on_surface]
+    quantum = np.broadcast_to(np.asarray(quantum_mm, dtype=np.float64), valid.shape)[on_surface]
+    off_surface = int((valid & ~truth.surface).sum())
     n_lit, n_valid = int(lit.sum()), int(valid.sum())
     rms, med, p95 = _stats(errors)
     return SurfaceAccuracy(lit_pixels=n_lit, valid_pixels=n_valid,
                            completeness=float((valid & lit).sum() / max(n_lit, 1)),
-                           outliers=float((far | (valid & ~truth.surface)).sum() / max(n_valid, 1)),
+                           outliers=float((int((errors > quantum).sum()) + off_surface) / max(n_valid, 1)),
                            rms_mm=rms, median_mm=med, p95_mm=p95)
+
+
+def gross_outliers(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibration: Calibration, *,
+                   stripes: float = 3.0) -> float:
+    """Share of the valid points that are more than `stripes` stripes of `spec` off: projected
+    into the projector, the point's coordinate along the phase direction is farther than that
+    from the true point's, or the camera sees no surface (or none the projector's lines reach)
+    at its pixel.
+
+    A point on its pixel's camera ray (as every scanned point is) is off by exactly its
+    decoding error in projector lines, so this counts wrong codes by how wrong they are,
+    whatever the stripes' depth there (which varies along the phase direction).
+    """
+    valid = result.valid
+    axis = 1 if spec.orientation == "rows" else 0
+    true_line = truth.proj[..., axis].astype(np.float64)
+    known = valid & truth.surface & np.isfinite(true_line)
+    scanned_line = calibration.projector.project(result.points[known])[:, axis]
+    off = np.abs(scanned_line - true_line[known]) > stripes * spec.phase_lines / spec.stripes
+    return float((int(off.sum()) + int((valid & ~known).sum())) / max(int(valid.sum()), 1))
 
 
 def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibration: Calibration) -> Accuracy:
@@ -194,7 +224,8 @@ def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibrat
     lit = stripes >= 0
     valid = result.valid
     correct = valid & lit & (result.stripe == stripes)
-    surface = surface_accuracy(result, truth, np.where(lit, stripe_depth(truth, spec, calibration), 0))
+    surface = surface_accuracy(result, truth, stripe_depth(truth, spec, calibration))
+    gross = gross_outliers(result, truth, spec, calibration)
     oracle = oracle_points(truth, spec, calibration)
     oracle_err = _errors(oracle, truth, lit & np.all(np.isfinite(oracle), axis=-1))
     orms, omed, _ = _stats(oracle_err)
@@ -202,7 +233,7 @@ def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibrat
                     completeness=surface.completeness,
                     stripe_accuracy=float(correct.sum() / max(surface.lit_pixels, 1)),
                     wrong_stripe=float((valid & lit & ~correct).sum() / max(surface.valid_pixels, 1)),
-                    outliers=surface.outliers, rms_mm=surface.rms_mm, median_mm=surface.median_mm,
+                    outliers=surface.outliers, gross_outliers=gross, rms_mm=surface.rms_mm, median_mm=surface.median_mm,
                     p95_mm=surface.p95_mm, oracle_rms_mm=orms, oracle_median_mm=omed)
 
 

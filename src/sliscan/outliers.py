@@ -7,14 +7,23 @@ map between neighbouring pixels is a depth discontinuity.  A real discontinuity 
 object, a step) separates two LARGE regions; a wrong code makes a SMALL one.  `remove_speckles`
 cuts the map at every jump larger than `max_jump`, then drops the connected regions smaller
 than `min_region_px`: OpenCV's speckle filter for stereo disparity, run on the projector map.
+
+A single-shot pattern adds a second kind: a patch narrower than one demodulation window along
+the carriers, next to a depth edge.  Every window that decoded it reached across the edge and
+mixed the light of both surfaces into a code that is neither's; such a patch can be large in
+area (a sliver along a limb) and so survive the speckle filter.  `remove_narrow_runs` drops
+the runs of a camera line that are shorter than the window and jump away from the nearest
+valid pixels on both sides.
 """
 
 from __future__ import annotations
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sliscan._threads import over_rows
 from sliscan._validate import InputError
 from sliscan.types import PatternSpec
 
@@ -99,3 +108,89 @@ def remove_speckles(proj_map: ArrayLike, valid: ArrayLike, *, lines: int, max_ju
     quantised[inside] = np.clip(np.rint((proj[inside] + 1) * scale), 0, _INT16_TOP)
     cv2.filterSpeckles(quantised, _EMPTY, size, max(1, int(max_jump * scale)))
     return inside & (quantised != _EMPTY)
+
+
+@numba.njit(cache=True, nogil=True)
+def _narrow_runs(proj: NDArray[np.float32], valid: NDArray[np.bool_], max_jump: float, max_length: int,
+                 rows: NDArray[np.intp], keep: NDArray[np.bool_]) -> None:
+    """`remove_narrow_runs` along axis 1 for the given rows (`keep` starts as `valid`)."""
+    w = proj.shape[1]
+    for y in rows:
+        x = 0
+        while x < w:
+            if not valid[y, x]:
+                x += 1
+                continue
+            start = x  # a run: valid pixels, each within max_jump of the one before
+            while x + 1 < w and valid[y, x + 1] and abs(proj[y, x + 1] - proj[y, x]) <= max_jump:
+                x += 1
+            end = x
+            x += 1
+            if end - start + 1 >= max_length:
+                continue
+            left = start - 1
+            while left >= 0 and start - left <= max_length and not valid[y, left]:
+                left -= 1
+            right = end + 1
+            while right < w and right - end <= max_length and not valid[y, right]:
+                right += 1
+            has_left = left >= 0 and start - left <= max_length
+            has_right = right < w and right - end <= max_length
+            if not (has_left or has_right):
+                continue  # nothing to disagree with: an isolated fragment, left to the speckle filter
+            if has_left and abs(proj[y, left] - proj[y, start]) <= max_jump:
+                continue
+            if has_right and abs(proj[y, right] - proj[y, end]) <= max_jump:
+                continue
+            keep[y, start:end + 1] = False
+
+
+def remove_narrow_runs(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float, window: int,
+                       axis: int = 1) -> NDArray[np.bool_]:
+    """Valid mask without the wrong codes that straddle a depth edge along the carriers.
+
+    Along `axis` (the carrier direction), the valid pixels form runs in which neighbours
+    differ by at most `max_jump`.  A run shorter than `window` pixels whose nearest valid
+    pixels within `window` on both sides (or on the one side that has any) jump by more than
+    `max_jump` is dropped: every demodulation window that decoded it reached across its
+    borders.  A real surface narrower than a window cannot be decoded by one anyway.
+
+    Parameters
+    ----------
+    proj_map : (H, W) float array
+        Projector coordinate per camera pixel (projector pixels along the phase direction).
+    valid : (H, W) bool array
+    max_jump : float
+        Largest difference (projector pixels) between neighbours of one surface
+        (`default_max_jump`).
+    window : int
+        Demodulation window along the carriers, camera pixels (`Carriers.window`).
+    axis : {1, 0}
+        The carrier direction: 1 (camera x) for patterns coding rows, 0 for columns.
+
+    Returns
+    -------
+    (H, W) bool array
+
+    Examples
+    --------
+    >>> proj = np.tile(np.full(200, 100.0, np.float32), (3, 1))
+    >>> proj[1, 90:110] = 400                                # a 20 px sliver of a wrong code
+    >>> keep = remove_narrow_runs(proj, np.ones(proj.shape, bool), max_jump=72, window=60)
+    >>> int((~keep).sum()), bool(keep[1, :90].all())
+    (20, True)
+    """
+    proj = np.asarray(proj_map)
+    mask = np.asarray(valid)
+    if proj.ndim != 2 or mask.shape != proj.shape or mask.dtype != np.bool_:
+        raise InputError(f"need an (H, W) projector map and a bool mask of the same shape, "
+                         f"got {proj.shape} and {mask.dtype} {mask.shape}")
+    if axis not in (0, 1) or not (window >= 1 and max_jump > 0):
+        raise InputError(f"need axis 0 or 1, a positive window and max_jump, got {axis}, {window}, {max_jump}")
+    if axis == 0:
+        return remove_narrow_runs(proj.T, mask.T, max_jump=max_jump, window=window).T
+    inside = np.ascontiguousarray(mask & np.isfinite(proj))
+    values = np.ascontiguousarray(proj, dtype=np.float32)
+    keep = inside.copy()
+    over_rows(lambda rows: _narrow_runs(values, inside, float(max_jump), int(window), rows, keep), proj.shape[0])
+    return keep

@@ -20,7 +20,7 @@ from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
 from sliscan.decode import Decoded, decode
 from sliscan.demodulate import Carriers, Demodulated, demodulate
-from sliscan.outliers import default_max_jump, remove_speckles
+from sliscan.outliers import default_max_jump, remove_narrow_runs, remove_speckles
 from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import Triangulator
 from sliscan.sequences import decode_frames
@@ -178,7 +178,9 @@ class Scanner:
     remove_speckles : bool
         Drop small regions of the projector map that jump away from their neighbours (wrong
         codes: `sliscan.outliers.remove_speckles`, with `default_max_jump` and
-        `default_min_region`).  On by default.
+        `default_min_region`) and, for composite kinds, the runs narrower than the
+        demodulation window that jump away from both sides along the carriers (wrong codes
+        across a depth edge: `sliscan.outliers.remove_narrow_runs`).  On by default.
 
     Examples
     --------
@@ -258,7 +260,7 @@ class Scanner:
         decoded = decode(demod, self.spec, **self.decode_options)
         t2 = time.perf_counter()
         points = self.triangulator(self.spec.orientation)(decoded.proj_map, decoded.valid)
-        valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation)
+        valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
         t3 = time.perf_counter()
         timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
         result = ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc),
@@ -274,16 +276,21 @@ class Scanner:
         return self._triangulators[orientation]
 
     def _measurable(self, points: NDArray[np.float32], proj_map: NDArray[np.float32], valid: NDArray[np.bool_],
-                    direction: str) -> NDArray[np.bool_]:
+                    direction: str, window: int | None = None) -> NDArray[np.bool_]:
         """`valid` less the points that are not measurements (`measurable`: outside the
-        projector's light, seen at under `min_angle_deg`) or, with `remove_speckles`, in small
-        regions that jump away from their neighbours; sets the dropped points to NaN.
+        projector's light, seen at under `min_angle_deg`) or, with `remove_speckles`, wrong
+        codes: runs narrower than the demodulation `window` (camera pixels; composite kinds)
+        across a depth edge, and small regions that jump away from their neighbours.  Sets
+        the dropped points to NaN.
 
         `proj_map` holds the projector coordinate along `direction` ("rows" or "columns")."""
         valid = measurable(points, valid, self.calibration, direction, min_angle_deg=self.min_angle_deg)
         if self.remove_speckles:
-            valid = remove_speckles(proj_map, valid, lines=self.spec.lines(direction),
-                                    max_jump=default_max_jump(self.spec, direction))
+            max_jump = default_max_jump(self.spec, direction)
+            if window is not None:
+                valid = remove_narrow_runs(proj_map, valid, max_jump=max_jump, window=window,
+                                           axis=1 if direction == "rows" else 0)
+            valid = remove_speckles(proj_map, valid, lines=self.spec.lines(direction), max_jump=max_jump)
         points[~valid] = np.nan
         return valid
 

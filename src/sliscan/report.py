@@ -374,8 +374,8 @@ def _truth_section(report: ScanReport) -> str:
                                                 title=f"{finite.size:,} valid points on the surface")
     if spec.kind in ("pmp", "graycode"):
         yardstick = patterns.thesis_spec(spec.projector_size, orientation=report.stages.direction)
-        gross = np.where(truth.lit, evaluate.stripe_depth(truth, yardstick, report.calibration), 0)
-        figures_of = evaluate.surface_accuracy(result, truth, gross).as_dict()
+        quantum = evaluate.stripe_depth(truth, yardstick, report.calibration)
+        figures_of = evaluate.surface_accuracy(result, truth, quantum).as_dict()
     else:
         figures_of = evaluate.accuracy(result, truth, spec, report.calibration).as_dict()
     rows = [(name.replace("_", " "), _format_figure(name, value)) for name, value in figures_of.items()]
