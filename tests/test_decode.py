@@ -240,3 +240,15 @@ def test_compiled_decoder_equals_the_numpy_form(make_spec, method, albedo, optio
     for name in ("stripe", "proj_map", "valid", "lit", "confidence", "levels"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(reference, name), err_msg=name)
     assert 0.15 < fast.valid.mean() < 0.95  # a real decode (sphere and background), not an empty one
+
+
+def test_bit_confidence_is_each_bit_margin_and_confidence_their_minimum(small_rig):
+    spec = patterns.default_spec((1024, 768))
+    capture = simulate.render(small_rig, simulate.tilted_plane_scene(20), patterns.render_pattern(spec), realistic(2))
+    decoded = decode(demodulate(capture.image, spec)[0], spec)
+    bits = decoded.bit_confidence
+    assert bits.shape == decoded.levels.shape and bits.min() >= 0 and bits.max() <= 1
+    np.testing.assert_allclose(bits[:, decoded.lit].min(axis=0), decoded.confidence[decoded.lit], atol=1e-6)
+    # valid pixels decide most bits well clear of their thresholds (one unclear bit is allowed
+    # on a stripe border, so there is no per-pixel bound)
+    assert np.median(bits[:, decoded.valid]) > 0.5

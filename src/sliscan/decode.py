@@ -61,6 +61,13 @@ class Decoded:
     confidence: NDArray[np.float32]
     levels: NDArray[np.float32]
 
+    @property
+    def bit_confidence(self) -> NDArray[np.float32]:
+        """``(K, H, W)`` float32: each bit decision's margin, in [0, 1] (0 = a level exactly at
+        its threshold, 1 = at or beyond its off or on level); `confidence` is their minimum on
+        lit pixels."""
+        return np.clip(2 * np.abs(self.levels - np.float32(0.5)), 0, 1).astype(np.float32)
+
 
 def two_means(values: NDArray[np.floating], *, iterations: int = 20) -> tuple[float, float]:
     """Centres of the low and high cluster of 1-D samples (Lloyd's algorithm, k = 2, with
