@@ -178,9 +178,11 @@ class Scanner:
     remove_speckles : bool
         Drop small regions of the projector map that jump away from their neighbours (wrong
         codes: `sliscan.outliers.remove_speckles`, with `default_max_jump` and
-        `default_min_region`) and, for composite kinds, the runs narrower than the
-        demodulation window that jump away from both sides along the carriers (wrong codes
-        across a depth edge: `sliscan.outliers.remove_narrow_runs`).  On by default.
+        `default_min_region`).  On by default.
+    remove_narrow_runs : bool
+        Composite kinds: drop the runs narrower than the demodulation window that jump away
+        from both sides along the carriers (wrong codes across a depth edge:
+        `sliscan.outliers.remove_narrow_runs`, with `default_max_jump`).  On by default.
 
     Examples
     --------
@@ -201,6 +203,7 @@ class Scanner:
     reuse_carriers: bool = False
     min_angle_deg: float = 2.0
     remove_speckles: bool = True
+    remove_narrow_runs: bool = True
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
 
@@ -278,19 +281,27 @@ class Scanner:
     def _measurable(self, points: NDArray[np.float32], proj_map: NDArray[np.float32], valid: NDArray[np.bool_],
                     direction: str, window: int | None = None) -> NDArray[np.bool_]:
         """`valid` less the points that are not measurements (`measurable`: outside the
-        projector's light, seen at under `min_angle_deg`) or, with `remove_speckles`, wrong
-        codes: runs narrower than the demodulation `window` (camera pixels; composite kinds)
-        across a depth edge, and small regions that jump away from their neighbours.  Sets
-        the dropped points to NaN.
+        projector's light, seen at under `min_angle_deg`) or wrong codes: with
+        `remove_narrow_runs`, runs narrower than the demodulation `window` (camera pixels;
+        composite kinds) across a depth edge; with `remove_speckles`, small regions that jump
+        away from their neighbours.  Sets the dropped points to NaN.
 
         `proj_map` holds the projector coordinate along `direction` ("rows" or "columns")."""
         valid = measurable(points, valid, self.calibration, direction, min_angle_deg=self.min_angle_deg)
-        if self.remove_speckles:
-            max_jump = default_max_jump(self.spec, direction)
-            if window is not None:
-                valid = remove_narrow_runs(proj_map, valid, max_jump=max_jump, window=window,
-                                           axis=1 if direction == "rows" else 0)
-            valid = remove_speckles(proj_map, valid, lines=self.spec.lines(direction), max_jump=max_jump)
+        max_jump = default_max_jump(self.spec, direction)
+
+        def despeckle(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+            if not self.remove_speckles:
+                return mask
+            return remove_speckles(proj_map, mask, lines=self.spec.lines(direction), max_jump=max_jump)
+
+        valid = despeckle(valid)
+        if self.remove_narrow_runs and window is not None:
+            # speckles first (cutting runs out of small fragments would only cost surface), then
+            # the runs, then speckles again: a run cut away may have joined a wrong patch to a surface
+            narrowed = remove_narrow_runs(proj_map, valid, max_jump=max_jump, window=window,
+                                          axis=1 if direction == "rows" else 0)
+            valid = despeckle(narrowed) if (narrowed != valid).any() else valid
         points[~valid] = np.nan
         return valid
 
