@@ -33,9 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from sliscan import patterns, simulate
-from sliscan import sequences
 from sliscan.evaluate import accuracy, sphere_fit, stripe_depth, surface_accuracy
 from sliscan.pipeline import Scanner
+
+from methods import method_specs, render_captures
 
 SCENES = {
     "sphere": simulate.sphere_scene,
@@ -124,19 +125,6 @@ def main() -> None:
         Path(args.markdown).write_text(markdown_table(rows))
 
 
-def method_specs(projector: tuple[int, int]) -> dict[str, patterns.PatternSpec]:
-    """Single-shot composite patterns and the multi-shot references of `--compare`."""
-    return {
-        "CP thesis 4-bit": patterns.thesis_spec(projector),
-        "CP sliscan 4-bit": patterns.default_spec(projector),
-        "Gray code 10-bit": patterns.PatternSpec(kind="graycode", projector_size=projector, orientation="rows"),
-        "Gray code 7-bit + 4-step phase": patterns.PatternSpec(kind="graycode", projector_size=projector,
-                                                               orientation="rows", code_width=8, steps=4),
-        "PMP 1,8,64 x 4": patterns.PatternSpec(kind="pmp", projector_size=projector, orientation="rows",
-                                               steps=4, frequencies=(1, 8, 64), a_p=0.5, b_p=0.5),
-    }
-
-
 def clean_conditions(seed: int) -> simulate.Conditions:
     """Noise-free, linear projector, no blur, no ambient, uniform albedo 0.8, 8-bit output."""
     return simulate.Conditions.ideal().with_(albedo=simulate.UniformAlbedo(0.8), supersample=3, bit_depth=8,
@@ -157,16 +145,12 @@ def compare(rig: simulate.Rig, projector: tuple[int, int], args: argparse.Namesp
         for cond_name, make in conditions_of.items():
             for seed in range(args.seeds):
                 for name, spec in specs.items():
-                    multi = spec.kind in ("pmp", "graycode")
-                    projected = sequences.render_frames(spec) if multi else patterns.render_pattern(spec)
-                    render = simulate.render_sequence if multi else simulate.render
-                    capture = render(rig, scene, projected, make(seed))
-                    frames = capture.images if multi else capture.image
+                    (frames,), truth = render_captures(rig, scene, [spec], make(seed))
                     t0 = time.perf_counter()
                     result = Scanner(spec, rig.calibration).scan(frames)
                     seconds = time.perf_counter() - t0
-                    acc = surface_accuracy(result, capture.truth, stripe_depth(capture.truth, yardstick, rig.calibration))
-                    radius, rejected = (sphere_fit(result, capture.truth, (0.0, 0.0, 800.0), 122.555)
+                    acc = surface_accuracy(result, truth, stripe_depth(truth, yardstick, rig.calibration))
+                    radius, rejected = (sphere_fit(result, truth, (0.0, 0.0, 800.0), 122.555)
                                         if scene_name == "sphere" else (float("nan"), float("nan")))
                     row = dict(method=name, frames=spec.frame_count, scene=scene_name, conditions=cond_name,
                                seed=seed, seconds=seconds, radius_mm=radius, fit_rejected=rejected,

@@ -1,12 +1,17 @@
-"""How the single-shot composite pattern degrades: the statistics the thesis left open (7.2).
+"""How single-shot and multi-shot scanning degrade: the statistics the thesis left open (7.2).
 
 One factor at a time is swept away from the realistic capture of the accuracy benchmark
 (smooth albedo 0.15-1.0, ambient 10 %, uncorrected projector gamma 2.2, 1 px blur in the
-projector and the camera, shot + read noise, 8 bits), for the thesis's 4-bit pattern and
-sliscan's default, on the sphere (every factor but slope) and on a tilted plane (slope):
+projector and the camera, shot + read noise, 8 bits) on the sphere (every factor but slope) and
+on a tilted plane (slope), for four patterns (`--patterns`; specs from `methods.py`, as
+`accuracy.py --compare`): the thesis's 4-bit composite pattern (`thesis`) and sliscan's default
+(`sliscan`), one frame each; multi-frequency PMP, 1, 8 and 64 cycles x 4 steps (`pmp`, 12
+frames); classic Gray code with 4-step phase refinement, 7 bits on 8-row codes (`graycode`,
+20 frames: pattern/inverse pairs, white, black, fringes):
 
 * noise: the sensor's full well (shot noise) from noise-free to 150 electrons, reported as the
-  measured carrier SNR (RMS of the carriers in a noise-free render over the RMS of the noise);
+  measured carrier SNR of the composite patterns (RMS of the carriers in a noise-free render
+  over the RMS of the noise);
 * ambient light: 0-50 % of the projector's full white;
 * albedo contrast: a 40 mm checker whose dark squares reflect less and less (high 0.9);
 * gamma mismatch: the pattern pre-corrected for a gamma that differs from the projector's 2.2
@@ -15,43 +20,71 @@ sliscan's default, on the sphere (every factor but slope) and on a tilted plane 
 * surface slope: a plane tilted about x (depth along the stripes' direction, stripes
   compressed) and about y (carriers compressed), 0-60 degrees.
 
-For every point: stripe error rate (valid lit pixels decoded to a wrong stripe), completeness,
-outliers and RMS 3D error (mm) against the simulator's ground truth, averaged over seeds.
-Prints one table per factor, writes JSON and a PNG of the curves.
+For every point and pattern: completeness (lit pixels with a point), outliers (valid points
+farther from the truth than one stripe of the thesis's 4-bit pattern, or off any surface: one
+yardstick for every pattern, as in `accuracy.py --compare`), gross outliers (the point's
+projector row more than three such stripes from the true one), RMS and median 3D error (mm),
+and for the composite patterns the stripe error rate (valid lit pixels decoded to a wrong
+stripe; a multi-frame pattern has no stripes to be wrong about); means over seeds. A capture
+the scanner refuses (an `InputError`, e.g. no carriers found) counts as completeness 0 and its
+message is kept. All patterns of a point come from one render of the scene
+(`methods.render_captures`: traced once, every frame with its own noise), and a point that
+repeats another (the realistic capture is noise 10000 e-, gamma mismatch 2.2 and blur 1 px;
+slope 0 about x and about y) is measured once. Prints one table per factor, writes JSON and a
+PNG of the curves.
 
-    python benchmarks/robustness.py --quick          # 1 seed, fewer levels (~15 min)
+    python benchmarks/robustness.py --quick --seeds 2      # 960x720, fewer levels: ~30 min
     python benchmarks/robustness.py --seeds 3 --plot docs/robustness.png --json benchmarks/robustness.json
+    python benchmarks/robustness.py --quick --patterns thesis,pmp --factors blur,"slope y"
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 
-from sliscan import patterns, simulate
-from sliscan.evaluate import accuracy
+from sliscan import InputError, patterns, simulate
+from sliscan.evaluate import accuracy, gross_outliers, stripe_depth, surface_accuracy
 from sliscan.pipeline import Scanner
-from sliscan.types import PatternSpec
+from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
+
+from methods import method_specs, render_captures
 
 BASE_GAMMA = 2.2
+
+#: `--patterns` keys -> names in `methods.method_specs`.
+PATTERNS = {"thesis": "CP thesis 4-bit", "sliscan": "CP sliscan 4-bit", "pmp": "PMP 1,8,64 x 4",
+            "graycode": "Gray code 7-bit + 4-step phase"}
+
+#: The figures of a row, in table order (`wrong_stripe` only for the composite patterns).
+FIGURES = ("completeness", "wrong_stripe", "outliers", "gross_outliers", "rms_mm", "median_mm")
+
+Scene = tuple[simulate.Surface, simulate.Conditions]
+
+
+def _same_pattern(level: float, spec: PatternSpec) -> PatternSpec:
+    return spec
 
 
 @dataclass(frozen=True)
 class Factor:
-    """One swept factor: its levels, and how a level changes the scene, conditions and pattern."""
+    """One swept factor: its levels, and how a level changes the scene and conditions, and the pattern."""
 
     name: str
     unit: str
     levels: tuple[float, ...]
     quick_levels: tuple[float, ...]
-    apply: Callable[[float, simulate.Conditions, PatternSpec], tuple[simulate.Surface, simulate.Conditions, PatternSpec]]
+    scene: Callable[[float, simulate.Conditions], Scene]
+    pattern: Callable[[float, PatternSpec], PatternSpec] = _same_pattern
 
 
 def base_conditions(seed: int) -> simulate.Conditions:
@@ -60,37 +93,35 @@ def base_conditions(seed: int) -> simulate.Conditions:
                                projector_gamma=BASE_GAMMA, projector_blur_px=1.0, camera_blur_px=1.0, seed=seed)
 
 
-def _sphere(conditions: simulate.Conditions, spec: PatternSpec, **changes: object):
-    return simulate.sphere_scene(), conditions.with_(**changes), spec
+def _sphere(conditions: simulate.Conditions, **changes: object) -> Scene:
+    return simulate.sphere_scene(), conditions.with_(**changes)
 
 
-def _checker(low: float, conditions: simulate.Conditions, spec: PatternSpec):
-    albedo = simulate.CheckerAlbedo(square_mm=40, low=low, high=0.9)
-    return simulate.sphere_scene(), conditions.with_(albedo=albedo), spec
+def _checker(low: float, conditions: simulate.Conditions) -> Scene:
+    return _sphere(conditions, albedo=simulate.CheckerAlbedo(square_mm=40, low=low, high=0.9))
 
 
-def _gamma_mismatch(mismatch: float, conditions: simulate.Conditions, spec: PatternSpec):
-    precorrection = BASE_GAMMA - mismatch
-    return simulate.sphere_scene(), conditions, spec.with_(gamma=1.0 if mismatch == BASE_GAMMA else precorrection)
+def _precorrected(mismatch: float, spec: PatternSpec) -> PatternSpec:
+    return spec.with_(gamma=1.0 if mismatch == BASE_GAMMA else BASE_GAMMA - mismatch)
 
 
-def _tilt(axis: str) -> Callable:
-    def apply(deg: float, conditions: simulate.Conditions, spec: PatternSpec):
-        return simulate.tilted_plane_scene(deg, axis=axis), conditions, spec
-    return apply
+def _tilt(axis: str) -> Callable[[float, simulate.Conditions], Scene]:
+    def scene(deg: float, conditions: simulate.Conditions) -> Scene:
+        return simulate.tilted_plane_scene(deg, axis=axis), conditions
+    return scene
 
 
 FACTORS = (
     Factor("noise", "full well (e-; 0 = noise-free)", (0, 40000, 10000, 2500, 600, 150), (0, 10000, 600, 150),
-           lambda v, c, s: _sphere(c, s, full_well_e=None if v == 0 else v)),
+           lambda v, c: _sphere(c, full_well_e=None if v == 0 else v)),
     Factor("ambient", "fraction of full white", (0.0, 0.1, 0.2, 0.3, 0.5), (0.0, 0.2, 0.5),
-           lambda v, c, s: _sphere(c, s, ambient=v)),
+           lambda v, c: _sphere(c, ambient=v)),
     Factor("albedo contrast", "dark square albedo (bright 0.9)", (0.9, 0.6, 0.4, 0.25, 0.1, 0.03), (0.9, 0.25, 0.05),
            _checker),
     Factor("gamma mismatch", "projector gamma - pre-correction gamma", (-0.6, -0.3, 0.0, 0.3, 0.6, BASE_GAMMA),
-           (-0.3, 0.0, 0.3, BASE_GAMMA), _gamma_mismatch),
+           (-0.3, 0.0, 0.3, BASE_GAMMA), lambda v, c: _sphere(c), _precorrected),
     Factor("blur", "sigma in projector and camera (px)", (0.0, 0.5, 1.0, 1.5, 2.0, 3.0), (0.0, 1.0, 2.0),
-           lambda v, c, s: _sphere(c, s, projector_blur_px=v, camera_blur_px=v)),
+           lambda v, c: _sphere(c, projector_blur_px=v, camera_blur_px=v)),
     Factor("slope x", "tilt about x (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("x")),
     Factor("slope y", "tilt about y (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("y")),
 )
@@ -109,105 +140,233 @@ def carrier_snr_db(clean: np.ndarray, noisy: np.ndarray, spec: PatternSpec, lit:
     return float(20 * np.log10(np.sqrt(np.mean(ac[lit] ** 2)) / max(np.sqrt(np.mean(noise[lit] ** 2)), 1e-12)))
 
 
-def measure(rig: simulate.Rig, spec: PatternSpec, factor: Factor, level: float, seed: int) -> dict:
-    """Scan one rendered capture at one level of one factor; accuracy figures and SNR."""
-    scene, conditions, spec = factor.apply(level, base_conditions(seed), spec)
-    image = patterns.render_pattern(spec)
-    capture = simulate.render(rig, scene, image, conditions)
-    t0 = time.perf_counter()
-    result = Scanner(spec, rig.calibration).scan(capture.image)
-    seconds = time.perf_counter() - t0
-    acc = accuracy(result, capture.truth, spec, rig.calibration)
-    row = dict(factor=factor.name, level=level, seed=seed, seconds=seconds, **acc.as_dict())
-    if factor.name == "noise":
-        clean = simulate.render(rig, scene, image, conditions.with_(full_well_e=None, bit_depth=None)).image
-        row["snr_db"] = carrier_snr_db(clean, capture.image, spec, capture.truth.lit)
-    return row
+def score(result: ScanResult, truth: simulate.GroundTruth, spec: PatternSpec, calibration: Calibration,
+          yardstick: PatternSpec, depth: NDArray[np.float32]) -> dict[str, float]:
+    """The figures of one scan (`FIGURES`).
+
+    A composite pattern is scored by `accuracy`, on its own stripes (the thesis's 16 stripes of
+    48 rows; sliscan's 15 of 51.2 rows); a multi-frame one by `surface_accuracy` and
+    `gross_outliers` on `yardstick`'s stripes (`depth` = its `stripe_depth`).
+    """
+    if spec.kind not in MULTI_FRAME_KINDS:
+        figures = accuracy(result, truth, spec, calibration).as_dict()
+    else:
+        figures = surface_accuracy(result, truth, depth).as_dict()
+        figures["gross_outliers"] = gross_outliers(result, truth, yardstick, calibration)
+    if not result.valid.any():  # shares of no valid points: undefined, not 0
+        figures.update({key: float("nan") for key in ("wrong_stripe", "outliers", "gross_outliers") if key in figures})
+    return {key: figures[key] for key in FIGURES if key in figures}
+
+
+class Sweep:
+    """Measures points of the sweeps on one rig for a set of patterns, each distinct point once.
+
+    Parameters
+    ----------
+    rig : Rig
+    specs : dict
+        Pattern name -> spec (before a factor changes it).
+    """
+
+    def __init__(self, rig: simulate.Rig, specs: dict[str, PatternSpec]) -> None:
+        self.rig = rig
+        self.specs = specs
+        self.yardstick = patterns.thesis_spec(rig.calibration.projector.size)
+        self._measured: dict[tuple, tuple[list[dict], bool]] = {}
+        self._clean: dict[tuple, list[NDArray[np.float32]]] = {}
+
+    def point(self, factor: Factor, level: float, seed: int) -> list[dict]:
+        """One row per pattern for `factor` at `level` and seed `seed`; with the composite
+        patterns' carrier SNR (`snr_db`) on the noise factor."""
+        scene, conditions = factor.scene(level, base_conditions(seed))
+        specs = {name: factor.pattern(level, spec) for name, spec in self.specs.items()}
+        with_snr = factor.name == "noise"
+        key = (scene, conditions, tuple(specs.values()))
+        if key not in self._measured or (with_snr and not self._measured[key][1]):
+            self._measured[key] = (self._measure(scene, conditions, specs, with_snr), with_snr)
+        rows = [dict(row) for row in self._measured[key][0]]
+        for row in rows:
+            if not with_snr:
+                row.pop("snr_db", None)
+            row.update(factor=factor.name, level=level, seed=seed)
+        return rows
+
+    def _measure(self, scene: simulate.Surface, conditions: simulate.Conditions, specs: dict[str, PatternSpec],
+                 with_snr: bool) -> list[dict]:
+        calibration = self.rig.calibration
+        frames, truth = render_captures(self.rig, scene, list(specs.values()), conditions)
+        depth = stripe_depth(truth, self.yardstick, calibration)
+        rows = []  # one per pattern, in the order of `specs`
+        for (name, spec), capture in zip(specs.items(), frames):
+            t0 = time.perf_counter()
+            try:
+                result = Scanner(spec, calibration).scan(capture)
+            except InputError as error:
+                rows.append(dict(pattern=name, seconds=time.perf_counter() - t0, completeness=0.0, error=str(error)))
+                continue
+            seconds = time.perf_counter() - t0
+            rows.append(dict(pattern=name, seconds=seconds, **score(result, truth, spec, calibration,
+                                                                    self.yardstick, depth)))
+        if with_snr:
+            single = [k for k, spec in enumerate(specs.values()) if spec.kind not in MULTI_FRAME_KINDS]
+            spec_list = list(specs.values())
+            clean = self._clean_frames(scene, conditions, [spec_list[k] for k in single])
+            for k, clean_frame in zip(single, clean):
+                rows[k]["snr_db"] = carrier_snr_db(clean_frame, frames[k], spec_list[k], truth.lit)
+        return rows
+
+    def _clean_frames(self, scene: simulate.Surface, conditions: simulate.Conditions,
+                      specs: list[PatternSpec]) -> list[NDArray[np.float32]]:
+        """Noise-free float renders of composite patterns (the same for every noise level)."""
+        clean = conditions.with_(full_well_e=None, bit_depth=None)
+        key = (scene, clean, tuple(specs))
+        if key not in self._clean:
+            self._clean[key] = render_captures(self.rig, scene, specs, clean)[0] if specs else []
+        return self._clean[key]
 
 
 def averaged(rows: list[dict]) -> dict:
-    """Mean of every numeric figure over seeds (NaN-aware for the error figures)."""
+    """Mean of every figure over seeds (of the seeds that have it, NaN-aware); refused captures
+    as a count and their distinct messages."""
     out = {k: rows[0][k] for k in ("pattern", "factor", "level")}
-    for key in ("completeness", "wrong_stripe", "outliers", "rms_mm", "median_mm", "snr_db"):
+    for key in (*FIGURES, "snr_db", "seconds"):
         values = [r[key] for r in rows if key in r]
         if values:
             finite = [v for v in values if np.isfinite(v)]
             out[key] = float(np.mean(finite)) if finite else float("nan")
+    errors = [r["error"] for r in rows if "error" in r]
+    if errors:
+        out["errors"] = f"{len(errors)}/{len(rows)} seeds"
+        out["error"] = "; ".join(dict.fromkeys(errors))
     return out
 
 
+def _cell(row: dict, key: str, scale: float, fmt: str) -> str:
+    value = row.get(key, float("nan"))
+    return format("-", ">" + fmt.split(".")[0]) if not np.isfinite(value) else format(scale * value, fmt)
+
+
 def print_table(factor: Factor, levels: tuple[float, ...], rows: list[dict]) -> None:
-    """One factor's table: a line per level, the figures of each pattern side by side."""
-    names = sorted({r["pattern"] for r in rows})
+    """One factor's table: a line per level and pattern."""
     print(f"\n{factor.name} ({factor.unit})")
-    head = f"{'level':>8s}" + ("" if factor.name != "noise" else f" {'SNR dB':>7s}")
-    for n in names:
-        head += f" | {n + ' wrong%':>19s} {'compl%':>7s} {'outl%':>6s} {'rms mm':>7s}"
-    print(head)
+    names = list(dict.fromkeys(r["pattern"] for r in rows))
+    print(f"{'level':>8s}  {'pattern':32s} {'SNR dB':>6s} {'compl%':>6s} {'wrong%':>6s} {'outl%':>6s} "
+          f"{'gross%':>6s} {'rms mm':>7s} {'med mm':>6s}")
     for level in levels:
-        line_rows = {r["pattern"]: r for r in rows if r["level"] == level}
-        line = f"{level:8g}"
-        if factor.name == "noise":
-            line += f" {np.mean([r['snr_db'] for r in line_rows.values()]):7.1f}"
-        for n in names:
-            r = line_rows[n]
-            line += (f" | {100 * r['wrong_stripe']:19.2f} {100 * r['completeness']:7.1f} "
-                     f"{100 * r['outliers']:6.2f} {r['rms_mm']:7.1f}")
-        print(line, flush=True)
+        for name in names:
+            r = next(r for r in rows if r["level"] == level and r["pattern"] == name)
+            note = f"  refused ({r['errors']}): {r['error']}" if "error" in r else ""
+            print(f"{level:8g}  {name:32s} {_cell(r, 'snr_db', 1, '6.1f')} {_cell(r, 'completeness', 100, '6.1f')} "
+                  f"{_cell(r, 'wrong_stripe', 100, '6.2f')} {_cell(r, 'outliers', 100, '6.2f')} "
+                  f"{_cell(r, 'gross_outliers', 100, '6.3f')} {_cell(r, 'rms_mm', 1, '7.1f')} "
+                  f"{_cell(r, 'median_mm', 1, '6.1f')}{note}", flush=True)
+
+
+def markdown_table(results: list[dict]) -> str:
+    """All rows as one Markdown table: a line per factor level, a column per pattern, each cell
+    completeness / outliers / gross outliers (%), and the stripe error rate of a composite
+    pattern in brackets."""
+    names = list(dict.fromkeys(r["pattern"] for r in results))
+    lines = ["| factor | level | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for factor in FACTORS:
+        levels = list(dict.fromkeys(r["level"] for r in results if r["factor"] == factor.name))
+        for i, level in enumerate(levels):
+            cells = []
+            for name in names:
+                r = next(r for r in results if r["factor"] == factor.name and r["level"] == level
+                         and r["pattern"] == name)
+                cell = (f"{_cell(r, 'completeness', 100, '.1f')} / {_cell(r, 'outliers', 100, '.2f')} / "
+                        f"{_cell(r, 'gross_outliers', 100, '.2f')}")
+                if np.isfinite(r.get("wrong_stripe", float("nan"))):
+                    cell += f" ({_cell(r, 'wrong_stripe', 100, '.1f')})"
+                cells.append(cell + (" refused" if "error" in r else ""))
+            snr = [r["snr_db"] for r in results if r["factor"] == factor.name and r["level"] == level and "snr_db" in r]
+            label = f"{level:g}" + (f" ({np.mean(snr):.0f} dB)" if snr else "")
+            lines.append(f"| {factor.name if i == 0 else ''} | {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def plot(results: list[dict], path: Path) -> None:
-    """Curves of stripe error rate and completeness per factor, one panel per factor."""
+    """Completeness (top) and outliers (bottom, solid; the composite patterns' wrong stripes
+    dotted) against the level of each factor, one column per factor, a colour per pattern."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(2, len(FACTORS), figsize=(3.2 * len(FACTORS), 6), squeeze=False)
-    for col, factor in enumerate(FACTORS):
-        for name in sorted({r["pattern"] for r in results}):
-            rows = [r for r in results if r["factor"] == factor.name and r["pattern"] == name]
-            if not rows:
-                continue
-            x = [r.get("snr_db", r["level"]) if factor.name == "noise" else r["level"] for r in rows]
-            axes[0, col].plot(x, [100 * r["wrong_stripe"] for r in rows], "o-", label=name)
-            axes[1, col].plot(x, [100 * r["completeness"] for r in rows], "o-", label=name)
+    factors = [f for f in FACTORS if any(r["factor"] == f.name for r in results)]
+    names = list(dict.fromkeys(r["pattern"] for r in results))
+    colours = dict(zip(names, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    fig, axes = plt.subplots(2, len(factors), figsize=(2.9 * len(factors), 6.6), squeeze=False)
+    for col, factor in enumerate(factors):
+        rows = [r for r in results if r["factor"] == factor.name]
+        snr = {r["level"]: r["snr_db"] for r in rows if "snr_db" in r}
+        use_snr = factor.name == "noise" and all(r["level"] in snr for r in rows)
+        for name in names:
+            mine = [r for r in rows if r["pattern"] == name]
+            x = [snr[r["level"]] if use_snr else r["level"] for r in mine]
+            percent = {key: [100 * r.get(key, float("nan")) for r in mine] for key in FIGURES}
+            axes[0, col].plot(x, percent["completeness"], "o-", color=colours[name])
+            axes[1, col].plot(x, percent["outliers"], "o-", color=colours[name])
+            if any("wrong_stripe" in r for r in mine):
+                axes[1, col].plot(x, percent["wrong_stripe"], "s:", color=colours[name])
         axes[0, col].set_title(factor.name, fontsize=9)
-        axes[1, col].set_xlabel("carrier SNR (dB)" if factor.name == "noise" else factor.unit, fontsize=7)
-    axes[0, 0].set_ylabel("wrong stripe (% of valid)")
-    axes[1, 0].set_ylabel("completeness (% of lit)")
-    axes[0, 0].legend(fontsize=7)
-    fig.tight_layout()
+        axes[1, col].set_xlabel("carrier SNR (dB)" if use_snr else factor.unit, fontsize=7)
+    axes[0, 0].set_ylabel("completeness (% of lit pixels)")
+    axes[1, 0].set_ylabel("% of valid points")
+    handles = [Line2D([], [], color=colours[n], marker="o", label=n) for n in names] + [
+        Line2D([], [], color="grey", marker="o", label="outliers (> 1 stripe off)"),
+        Line2D([], [], color="grey", marker="s", linestyle=":", label="wrong stripe (composite patterns)")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--camera", default="1296x972")
+    parser.add_argument("--camera", help="WxH (default 1296x972; 960x720 with --quick)")
     parser.add_argument("--projector", default="1024x768")
-    parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--quick", action="store_true", help="1 seed and fewer levels")
+    parser.add_argument("--seeds", type=int, help="seeds per point (default 2; 1 with --quick)")
+    parser.add_argument("--quick", action="store_true",
+                        help="fewer levels, a 960x720 camera unless --camera, 1 seed unless --seeds")
+    parser.add_argument("--patterns", default=",".join(PATTERNS), help=f"comma-separated, of {', '.join(PATTERNS)}")
     parser.add_argument("--factors", default=",".join(f.name for f in FACTORS))
     parser.add_argument("--json", default="benchmarks/robustness.json")
     parser.add_argument("--plot", default="docs/robustness.png")
+    parser.add_argument("--markdown", help="also write the README's table (one line per level) to this file")
     args = parser.parse_args()
-    camera = tuple(int(v) for v in args.camera.split("x"))
+    chosen_patterns = args.patterns.split(",")
+    chosen = [f for f in FACTORS if f.name in args.factors.split(",")]
+    unknown = (set(chosen_patterns) - set(PATTERNS)) | (set(args.factors.split(",")) - {f.name for f in FACTORS})
+    if unknown:
+        parser.error(f"unknown pattern or factor {', '.join(sorted(unknown))}")
+    camera = tuple(int(v) for v in (args.camera or ("960x720" if args.quick else "1296x972")).split("x"))
     projector = tuple(int(v) for v in args.projector.split("x"))
     rig = simulate.virtual_rig(camera_size=camera, projector_size=projector)
-    specs = {"thesis 4-bit": patterns.thesis_spec(projector), "sliscan 4-bit": patterns.default_spec(projector)}
-    seeds = range(1 if args.quick else args.seeds)
-    chosen = [f for f in FACTORS if f.name in args.factors.split(",")]
+    everything = method_specs(projector)
+    sweep = Sweep(rig, {PATTERNS[key]: everything[PATTERNS[key]] for key in chosen_patterns})
+    seeds = range(args.seeds or (1 if args.quick else 2))
     results = []
     for factor in chosen:
         levels = factor.quick_levels if args.quick else factor.levels
-        rows = [averaged([dict(measure(rig, spec, factor, level, seed), pattern=name) for seed in seeds])
-                for level in levels for name, spec in specs.items()]
+        t0 = time.perf_counter()
+        measured = []
+        for level in levels:
+            for seed in seeds:
+                measured += sweep.point(factor, level, seed)
+                print(f"  {factor.name} {level:g} seed {seed}: {time.perf_counter() - t0:.0f} s", file=sys.stderr,
+                      flush=True)
+        rows = [averaged([r for r in measured if r["level"] == level and r["pattern"] == name])
+                for level in levels for name in sweep.specs]
         print_table(factor, levels, rows)
         results += rows
     Path(args.json).write_text(json.dumps({"camera": camera, "projector": projector, "seeds": len(seeds),
-                                           "rows": results}, indent=1))
+                                           "patterns": list(sweep.specs), "rows": results}, indent=1))
     plot(results, Path(args.plot))
+    if args.markdown:
+        Path(args.markdown).write_text(markdown_table(results))
     print(f"\nwrote {args.json} and {args.plot}")
 
 
