@@ -54,7 +54,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from sliscan._validate import InputError, check_finite_matrix, check_image
 from sliscan.lens import distort, has_distortion, undistort
-from sliscan.targets import CircleTarget
+from sliscan.targets import Board, CircleTarget
 from sliscan.types import Calibration, Device
 
 __all__ = [
@@ -77,7 +77,9 @@ __all__ = [
     "UniformAlbedo",
     "Union",
     "board_scene",
+    "calibration_poses",
     "camera_view",
+    "circle_grid_scene",
     "circle_target_scene",
     "plane_scene",
     "projector_rows",
@@ -984,12 +986,23 @@ def circle_target_scene(
     return Union(*faces), DiscAlbedo(target.centres, radius_mm), target
 
 
+def _board_pose(tilt_deg: tuple[float, float], distance_mm: float,
+                offset_mm: tuple[float, float]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Centre ``(3,)`` (mm) and rotation ``(3, 3)`` (columns: the board's x, y axes and normal)
+    of a board at ``(offset_x, offset_y, distance_mm)`` turned by `tilt_deg` (degrees about the
+    x axis, then about the y axis)."""
+    ax, ay = (math.radians(a) for a in tilt_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    return np.array([offset_mm[0], offset_mm[1], distance_mm], dtype=np.float64), ry @ rx
+
+
 def board_scene(
     *, tilt_deg: tuple[float, float] = (0.0, 0.0), distance_mm: float = 800.0,
-    inner_corners: tuple[int, int] = (9, 7), square_mm: float = 30.0
+    inner_corners: tuple[int, int] = (9, 7), square_mm: float = 30.0, offset_mm: tuple[float, float] = (0.0, 0.0)
 ) -> tuple[Plane, BoardAlbedo]:
-    """A flat chessboard centred on the camera axis at `distance_mm`, turned by `tilt_deg`
-    (degrees about the x axis, then about the y axis).
+    """A flat chessboard centred at ``(offset_mm, distance_mm)`` (by default on the camera axis
+    at `distance_mm`), turned by `tilt_deg` (degrees about the x axis, then about the y axis).
 
     Returns
     -------
@@ -997,16 +1010,67 @@ def board_scene(
     albedo : BoardAlbedo
         The board printed on it (its `corners` are the inner corners in mm).
     """
-    ax, ay = (math.radians(a) for a in tilt_deg)
-    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
-    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
-    rotation = ry @ rx
+    centre, rotation = _board_pose(tilt_deg, distance_mm, offset_mm)
     x_axis, y_axis = rotation[:, 0], rotation[:, 1]
     cols, rows = inner_corners
-    centre = np.array([0.0, 0.0, distance_mm])
     origin = centre - square_mm * ((cols - 1) / 2 * x_axis + (rows - 1) / 2 * y_axis)
     albedo = BoardAlbedo(origin, x_axis, y_axis, inner_corners, square_mm)
     return Plane(tuple(centre), tuple(rotation[:, 2])), albedo
+
+
+Pose = tuple[tuple[float, float], tuple[float, float]]
+
+
+def calibration_poses(count: int, *, tilt_deg: float = 35.0,
+                      offset_mm: tuple[float, float] = (70.0, 50.0)) -> list[Pose]:
+    """Board poses that pin down a lens: ``(tilt_deg, offset_mm)`` pairs for `board_scene` and
+    `circle_grid_scene`.
+
+    Pose ``k`` tilts the board by `tilt_deg` towards direction ``2 pi k / count`` (about the x
+    and y axes) and moves its centre by `offset_mm` around an ellipse (a radian further on), so
+    the poses together see the board strongly foreshortened in every direction (focal lengths,
+    principal point) and reach into the image corners (distortion).
+
+    Examples
+    --------
+    >>> [(tuple(round(a) for a in t), tuple(round(o) for o in off)) for t, off in calibration_poses(4)][:2]
+    [((35, 0), (38, 42)), ((0, 35), (-59, 27))]
+    """
+    if count < 1 or not 0 <= tilt_deg < 90:
+        raise InputError(f"calibration_poses needs count >= 1 and tilt_deg in [0, 90), got {count}, {tilt_deg}")
+    angles = 2 * np.pi * np.arange(count) / count
+    return [((tilt_deg * math.cos(a), tilt_deg * math.sin(a)),
+             (offset_mm[0] * math.cos(a + 1), offset_mm[1] * math.sin(a + 1))) for a in angles]
+
+
+def circle_grid_scene(
+    board: Board, *, tilt_deg: tuple[float, float] = (0.0, 0.0), distance_mm: float = 800.0,
+    offset_mm: tuple[float, float] = (0.0, 0.0)
+) -> tuple[Plane, DiscAlbedo, NDArray[np.float64]]:
+    """A flat circle grid (`sliscan.targets.Board`, symmetric or asymmetric, with its radius)
+    printed on an endless white plane, its layout centred at ``(offset_mm, distance_mm)`` and
+    turned by `tilt_deg` as in `board_scene`.
+
+    Returns
+    -------
+    scene : Plane
+    albedo : DiscAlbedo
+        The circles (albedo 0.1 on 0.9).
+    centres : (N, 3) float64 array
+        The circle centres in mm, in OpenCV's order (`Board.points`).
+
+    Raises
+    ------
+    InputError
+        If `board` is not a circle grid with a radius.
+    """
+    if not board.circles or board.radius is None:
+        raise InputError(f"a circle grid scene needs a circle grid with its radius, got a {board.describe()} "
+                         f"with radius {board.radius}")
+    centre, rotation = _board_pose(tilt_deg, distance_mm, offset_mm)
+    layout = board.points().astype(np.float64)
+    centres = centre + (layout - layout.mean(axis=0)) @ rotation.T
+    return Plane(tuple(centre), tuple(rotation[:, 2])), DiscAlbedo(centres, board.radius), centres
 
 
 # --------------------------------------------------------------------------------------------
