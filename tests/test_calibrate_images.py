@@ -209,7 +209,7 @@ def test_board_view_errors(board_captures):
 def test_circle_grid_centres_are_the_ellipse_centres(board_rig, board):
     """On a grid tilted by 35 degrees (2x2 samples per pixel, noise-free) the centres come in
     OpenCV's order, at the image ellipses' centres to 0.05 px RMS (measured 0.03-0.04 px: the
-    aliasing of the edges), where OpenCV's own blob centres are 0.06-0.08 px off."""
+    aliasing of the edges), where OpenCV's own blob centres are 0.07 px off."""
     tilt, offset = simulate.calibration_poses(8)[1]
     scene, albedo, centres = simulate.circle_grid_scene(board, tilt_deg=tilt, offset_mm=offset)
     image = simulate.render(board_rig, scene, np.ones(board_rig.projector.shape),

@@ -1150,7 +1150,7 @@ From captured images instead of measured points, use the command of your target 
 the options it needs, and writes the same calibration JSON):
   sliscan calibrate-target cap/ --pattern pmp.json --target target.json -o rig.json   # 3-D circle target
   sliscan calibrate-board pose_*/ --pattern gc.json --board 9x7 --square 25 -o rig.json  # planar board""")
-@click.argument("g_file", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.argument("g_file", nargs=-1, required=True, metavar="G_FILE", type=click.Path(path_type=Path))
 @_camera_option(help="Camera image size, e.g. 2592x1944 (required).")
 @_projector_option(help="Projector size, e.g. 1024x768 (required).")
 @click.option("--method", type=click.Choice(["svd", "lstsq"]), default="svd", show_default=True,

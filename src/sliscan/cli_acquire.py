@@ -247,6 +247,7 @@ Examples:
   sliscan scan take/acquisition.json --calibration rig.json --ply take.ply
   sliscan acquire --pattern cp.json --camera 0 --screen 1 --average 4 -o cp-take
   sliscan acquire --pattern gc.json --calibration-board 9x7 --square 25 --poses 6 -o cal   # -> cal/rig.json
+  sliscan acquire --pattern gc.json --calibration-board 4x11 --circles asymmetric --spacing 20 --poses 8 -o cal
   sliscan acquire --pattern pmp.json --calibration-target target.json -o cal-target
 \b
 Without hardware (the virtual rig, a virtual clock):

@@ -22,7 +22,7 @@ its calibrations have none).
   known line (a camera ray's epipolar line in the projector), Newton's method along the line.
 
 The model is written once (`_model`, compiled with numba) and evaluated point by point in
-compiled loops: undistorting a 1296x972 map of decoded projector rows takes ~0.13 s this way,
+compiled loops: undistorting a 1296x972 map of decoded projector rows takes ~0.07 s this way,
 ~0.8 s as the same Newton iteration in numpy array expressions (README, "Lens distortion").
 
 References
@@ -89,7 +89,9 @@ def _model(u: float, v: float, d: NDArray[np.float64]) -> tuple[float, float, fl
     ud = u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u)
     vd = v * radial + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v
     cross = slope * u * v + 2.0 * p1 * u + 2.0 * p2 * v
-    return ud, vd, radial + slope * u * u + 2.0 * p1 * v + 6.0 * p2 * u, cross, radial + slope * v * v + 6.0 * p1 * v + 2.0 * p2 * u
+    d_ud_du = radial + slope * u * u + 2.0 * p1 * v + 6.0 * p2 * u
+    d_vd_dv = radial + slope * v * v + 6.0 * p1 * v + 2.0 * p2 * u
+    return ud, vd, d_ud_du, cross, d_vd_dv
 
 
 @numba.njit(cache=True, nogil=True)

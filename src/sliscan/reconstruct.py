@@ -14,7 +14,6 @@ solved for every pixel at once with the adjugate (Cramer's rule) in float64.
 
 from __future__ import annotations
 
-
 import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -178,7 +177,9 @@ class Triangulator:
     undistorted once, here.  The coefficients are float64 (``(H, W, 8)``, 64 bytes per
     pixel: float32 ones lose up to 0.02 mm where the projector coordinate is ill-conditioned,
     as for columns on a vertical baseline); the points agree with `_solve`'s to float32
-    rounding.
+    rounding.  With projector distortion each pixel's epipolar line in the projector is found
+    once too (`_ProjectorLens`, 16 more bytes a pixel), and every call first undistorts the
+    decoded coordinates (`_ideal_projector`).
 
     Parameters
     ----------
@@ -225,7 +226,8 @@ class Triangulator:
 
     def __call__(self, proj_map: ArrayLike, valid: ArrayLike | None = None, *,
                  other: ArrayLike | None = None) -> NDArray[np.float32]:
-        """World points ``(H, W, 3)`` float32 of a projector-coordinate map; as `triangulate`."""
+        """World points ``(H, W, 3)`` float32 of a projector-coordinate map (and, optionally, of
+        the `other` projector coordinate, for an exact projector undistortion); as `triangulate`."""
         proj_map = _check_proj_map("proj_map", proj_map, self.shape)
         mask = np.isfinite(proj_map)
         if valid is not None:

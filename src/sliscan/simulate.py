@@ -156,9 +156,8 @@ class Pinhole:
         object.__setattr__(self, "size", (w, h))
 
     @classmethod
-    def from_matrix(cls, matrix: ArrayLike, size: tuple[int, int], distortion: ArrayLike | None = None) -> Pinhole:
-        """Split a 3x4 projection matrix (any scale or sign) into ``K``, ``R``, ``t`` (RQ); the
-        lens `distortion`, if any, is relative to that ``K``.
+    def from_matrix(cls, matrix: ArrayLike, size: tuple[int, int]) -> Pinhole:
+        """Split a 3x4 projection matrix (any scale or sign) into ``K``, ``R``, ``t`` (RQ), no lens.
 
         Raises
         ------
@@ -176,8 +175,7 @@ class Pinhole:
         scale = K[2, 2]
         K = K / scale
         K[1, 0] = K[2, 0] = K[2, 1] = 0.0
-        return cls(K=K, R=R, t=np.linalg.solve(K, P[:, 3]) / scale, size=size,
-                   distortion=None if distortion is None else np.asarray(distortion, dtype=np.float64))
+        return cls(K=K, R=R, t=np.linalg.solve(K, P[:, 3]) / scale, size=size)
 
     @property
     def matrix(self) -> NDArray[np.float64]:

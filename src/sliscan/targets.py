@@ -238,7 +238,7 @@ def detect_circles(image: ArrayLike, *, min_radius_px: float = 3.0, max_aspect: 
         ``(x, y)`` of each circle, sorted by row then column of the blob's first pixel.
     """
     img = check_image("image", image)
-    count, labels, stats = _dark_blobs(img)
+    _, labels, stats = _dark_blobs(img)
     h, w = img.shape
     x0, y0, bw, bh, area = (stats[:, k] for k in range(5))
     inside = (x0 > 0) & (y0 > 0) & (x0 + bw < w) & (y0 + bh < h)
@@ -357,8 +357,8 @@ def detect_circle_grid(image: ArrayLike, pattern_size: tuple[int, int], *, asymm
         ``(x, y)`` row by row; None if the grid is not found.
     """
     img = check_image("image", image)
-    top = float(np.percentile(img, 99.5))
-    u8 = np.round(np.clip(img / max(top, 1e-6), 0, 1) * 255).astype(np.uint8)
+    img = img / max(float(np.percentile(img, 99.5)), 1e-6)  # white at the 99.5th percentile
+    u8 = np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
     size = tuple(int(v) for v in pattern_size)
     count = size[0] * size[1]
     base = cv2.CALIB_CB_ASYMMETRIC_GRID if asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
@@ -374,7 +374,7 @@ def detect_circle_grid(image: ArrayLike, pattern_size: tuple[int, int], *, asymm
     half = max(4, int(np.ceil(0.75 * spacing)))
     refined = coarse.copy()
     for k, centre in enumerate(coarse):
-        better = _refine_circle(img / max(top, 1e-6), centre, half)
+        better = _refine_circle(img, centre, half)
         if better is not None and np.hypot(*(better - centre)) < _REFINE_MAX_SHIFT * spacing:
             refined[k] = better
     return refined
