@@ -356,15 +356,17 @@ def test_measure_settle(folder):
 
 
 def test_acquire_board_calibration_recovers_the_virtual_rig(tmp_path):
-    """`sliscan acquire --calibration-board` on the virtual rig: four board poses (Enter between
-    them), then calibrate-board's code; the result recovers the rig as the issue-5 test of
-    calibrate-board does (focal lengths within 2 %, projector centre within 5 mm)."""
+    """`sliscan acquire --calibration-board` on the virtual rig: four poses of OpenCV's
+    asymmetric circle grid (Enter between them), then calibrate-board's code; the result
+    recovers the rig as the issue-5 test of calibrate-board does with a chessboard (focal
+    lengths within 2 %, projector centre within 5 mm)."""
     board_rig = simulate.virtual_rig(camera_size=(480, 360), projector_size=(512, 384))
     board_rig.calibration.save(tmp_path / "truth.json")
     sequences.save_sequence(tmp_path / "pmp.json", PatternSpec(kind="pmp", orientation="both", steps=4,
                                                                frequencies=(1, 8), b_p=0.5, projector_size=(512, 384)))
     stdout = ok("acquire", "--pattern", "pmp.json", *VIRTUAL, "--virtual-rig", "truth.json",
-                "--calibration-board", "9x7", "--square", "30", "--no-projector-distortion", "-o", "cal",
+                "--calibration-board", "4x11", "--circles", "asymmetric", "--spacing", "20", "--radius", "5",
+                "--no-projector-distortion", "-o", "cal",
                 cwd=tmp_path, input="\n" * 4)
     assert "pose 4 of 4: wrote cal/pose_03/ (16 captures, no retakes)" in stdout and "wrote cal/rig.json" in stdout
     calib = Calibration.load(tmp_path / "cal" / "rig.json")

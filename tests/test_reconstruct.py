@@ -179,15 +179,87 @@ def test_bad_options():
         triangulate_points([np.nan], [1.0], [1.0], calibration)
 
 
-def test_unsupported_distortion():
+# Realistic lenses (OpenCV's k1, k2, p1, p2, k3): 3-15 px of distortion at the image corners.
+CAMERA_LENS = np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0])
+PROJECTOR_LENS = np.array([0.09, -0.04, -8e-4, 6e-4, 0.0])
+
+
+def with_lenses(calibration: Calibration, camera_lens=CAMERA_LENS, projector_lens=PROJECTOR_LENS) -> Calibration:
+    devices = [Device(d.matrix, d.size, intrinsics=d.intrinsics, distortion=lens)
+               for d, lens in ((calibration.camera, camera_lens), (calibration.projector, projector_lens))]
+    return Calibration(*devices)
+
+
+@pytest.mark.parametrize("orientation", ["rows", "columns"])
+def test_projector_distortion_is_undistorted(orientation, rng):
+    """Decoded projector coordinates are distorted pixels: with one coordinate the point is solved
+    on the epipolar line (Newton, to 1e-6 px), with both it is undistorted exactly.  1e-6 px of
+    projector coordinate moves a point by Z**2 / (f_p b) * 1e-6 = 900**2 / (400 * 200) * 1e-6 =
+    1e-5 mm at most in this volume: tolerance 2e-5 mm."""
+    calibration = with_lenses(rig(orientation))
+    world = rng.uniform([-150, -100, 700], [150, 100, 900], size=(200, 3))
+    observed = calibration.projector.project(world)
+    rvec, _ = cv2.Rodrigues(np.linalg.solve(calibration.projector.intrinsics, calibration.projector.matrix)[:, :3])
+    tvec = np.linalg.solve(calibration.projector.intrinsics, calibration.projector.matrix[:, 3])
+    expected = cv2.projectPoints(world, rvec, tvec, calibration.projector.intrinsics, PROJECTOR_LENS)[0][:, 0]
+    np.testing.assert_allclose(observed, expected, rtol=0, atol=1e-9)  # Device.project is OpenCV's model
+    xc, yc = calibration.camera.project(world).T
+    coded, other = observed[:, CODED[orientation]], observed[:, 1 - CODED[orientation]]
+    got = triangulate_points(xc, yc, coded, calibration, orientation=orientation)
+    np.testing.assert_allclose(got, world, rtol=0, atol=2e-5)
+    exact = triangulate_points(xc, yc, coded, calibration, orientation=orientation, other=other)
+    np.testing.assert_allclose(exact, world, rtol=0, atol=2e-5)
+    pinhole_projector = with_lenses(rig(orientation), projector_lens=None)
+    ignoring = triangulate_points(xc, yc, coded, pinhole_projector, orientation=orientation)
+    # Ignoring the projector's lens (1-2 px at its corners) costs 0.5-0.8 mm RMS here: 1e4 x the tolerance.
+    assert np.sqrt(np.mean(np.sum((ignoring - world) ** 2, axis=1))) > 0.2
+    # The grid path (Triangulator) solves the same way, with or without the other coordinate.
+    h, w = calibration.camera.shape
+    yc, xc = np.mgrid[0:h:40, 0:w:40].reshape(2, -1).astype(float)
+    ray = calibration.camera.intrinsics @ np.eye(3)
+    depth = rng.uniform(700, 900, xc.size)
+    points = np.linalg.solve(ray, np.stack([*lens_undistort(calibration, xc, yc), np.ones_like(xc)])).T * depth[:, None]
+    proj = calibration.projector.project(points)
+    proj_map, other_map = np.full((2, h, w), np.nan)
+    proj_map[yc.astype(int), xc.astype(int)] = proj[:, CODED[orientation]]
+    other_map[yc.astype(int), xc.astype(int)] = proj[:, 1 - CODED[orientation]]
+    for other_arg in (None, other_map):
+        grid = triangulate(proj_map, calibration, orientation=orientation, other=other_arg)
+        # float32 output at 900 mm: 6e-5 mm spacing; ATOL_FLOAT32_MM bounds it.
+        np.testing.assert_allclose(grid[yc.astype(int), xc.astype(int)], points, rtol=0, atol=ATOL_FLOAT32_MM)
+
+
+def lens_undistort(calibration: Calibration, xc: np.ndarray, yc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal camera pixels of observed ones (OpenCV's own undistortPoints, P = K)."""
+    k = calibration.camera.intrinsics
+    ideal = cv2.undistortPoints(np.stack([xc, yc], -1).reshape(-1, 1, 2), k, calibration.camera.distortion, P=k,
+                                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))[:, 0]
+    return ideal[:, 0], ideal[:, 1]
+
+
+def test_projector_points_beyond_the_lens_model_are_nan():
+    """A decoded row that no point on the ray can produce (beyond where the projector's barrel
+    model folds back) is not triangulated: NaN, not a wrong point."""
+    calibration = with_lenses(rig("rows"), projector_lens=np.array([-0.6, 0, 0, 0, 0]))
+    # The camera's central ray meets the projector's central column (u = 0), where with k1 = -0.6
+    # y_d = y (1 - 0.6 y**2) peaks at y = 0.745 (normalised): y_d = 0.497 f = 199 px below the centre.
+    got = triangulate_points([319.5, 319.5], [239.5, 239.5], [95.5 + 100.0, 95.5 + 230.0], calibration)
+    assert np.all(np.isfinite(got[0])) and np.all(np.isnan(got[1]))
+
+
+def test_distortion_needs_intrinsics():
     camera, projector = make_rig()
-    distorted = Device(projector.matrix, projector.size, intrinsics=projector.intrinsics,
-                       distortion=[0.1, 0, 0, 0, 0])
-    with pytest.raises(InputError, match="projector lens distortion is not supported yet"):
-        triangulate(np.zeros(camera.shape), Calibration(camera, distorted))
-    no_k = Device(camera.matrix, camera.size, distortion=[0.1, 0, 0, 0, 0])
-    with pytest.raises(InputError, match="camera has lens distortion but no intrinsics"):
-        triangulate_points([1.0], [1.0], [1.0], Calibration(no_k, projector))
+    for name, calibration in (
+            ("camera", Calibration(Device(camera.matrix, camera.size, distortion=[0.1, 0, 0, 0, 0]), projector)),
+            ("projector", Calibration(camera, Device(projector.matrix, projector.size, distortion=[0.1, 0, 0, 0, 0])))):
+        with pytest.raises(InputError, match=f"^the {name} has lens distortion but no intrinsics"):
+            triangulate_points([1.0], [1.0], [1.0], calibration)
+        with pytest.raises(InputError, match=f"^the {name} has lens distortion but no intrinsics"):
+            triangulate(np.zeros(camera.shape), calibration)
+    with pytest.raises(InputError, match=r"^other must have shape \(480, 640\) \(H, W\), got \(4, 4\)$"):
+        triangulate(np.zeros(camera.shape), with_lenses(Calibration(camera, projector)), other=np.zeros((4, 4)))
+    with pytest.raises(InputError, match="xc, yc, proj and other must be 1-D arrays of one length"):
+        triangulate_points([1.0], [1.0], [1.0], Calibration(camera, projector), other=[1.0, 2.0])
 
 
 @pytest.fixture

@@ -53,10 +53,12 @@ import scipy.optimize
 import scipy.spatial
 from numpy.typing import ArrayLike, NDArray
 
+from sliscan import lens
 from sliscan._validate import InputError, atomic_write_text, check_finite_matrix
 from sliscan.formats.premat5 import check_g, phase_to_pixel, pixel_to_phase
+from sliscan.lens import has_distortion
 from sliscan.pmp import ProjectorMap
-from sliscan.targets import CircleTarget, corner_spacing, detect_chessboard, detect_circles, projector_points
+from sliscan.targets import Board, CircleTarget, detect_circles, projector_points
 from sliscan.types import Calibration, Device, _load_json
 
 #: Fewest points for a DLT: 11 unknowns, 2 equations per point.
@@ -544,74 +546,71 @@ def calibrate_target(maps: Mapping[str, ProjectorMap], target: CircleTarget, pro
 
 
 # --------------------------------------------------------------------------------------------
-# The planar workflow: chessboard poses, OpenCV calibration with lens distortion
+# The planar workflow: board poses (chessboard or circle grid), OpenCV calibration with lens distortion
 # --------------------------------------------------------------------------------------------
 
 #: Fewest good board views `calibrate_board` takes.
 MIN_BOARD_VIEWS = 3
-#: A view counts when at least this fraction of its corners have projector coordinates.
+#: A view counts when at least this fraction of its points have projector coordinates.
 MIN_PROJECTOR_CORNERS = 0.5
 # A view is flagged as an outlier when its RMS exceeds this multiple of the median view's RMS
 # and this many pixels.
 _OUTLIER_FACTOR = 2.0
 _OUTLIER_FLOOR_PX = 0.5
+# Half-window of the projector's local fit around a board point, in neighbour spacings: a chessboard
+# corner's window stays inside its four squares; a circle's reaches past the (undecoded) dark disc.
+_FIT_WINDOW = {"corner": 0.4, "circle": 0.6}
 
 
 @dataclass(frozen=True, eq=False)
 class BoardView:
-    """The chessboard corners of one pose, in the camera and in the projector.
+    """The board points (chessboard corners, circle centres) of one pose, in the camera and in
+    the projector.
 
     Attributes
     ----------
     camera : (N, 2) float64 array
-        Corners ``(x, y)`` in camera pixels, OpenCV's order (along a board row first).
+        Points ``(x, y)`` in camera pixels, OpenCV's order (`sliscan.targets.Board.points`).
     projector : (N, 2) float64 array
-        The same corners' ``(xp, yp)`` in projector pixels; NaN where not decoded.
+        The same points' ``(xp, yp)`` in projector pixels; NaN where not decoded.
     """
 
     camera: FloatArray
     projector: FloatArray
 
 
-def board_points(inner_corners: tuple[int, int], square: float) -> NDArray[np.float32]:
-    """``(columns * rows, 3)`` board corners ``(i square, j square, 0)``, OpenCV's order."""
-    cols, rows = inner_corners
-    j, i = np.mgrid[0:rows, 0:cols]
-    return np.c_[i.ravel() * square, j.ravel() * square, np.zeros(cols * rows)].astype(np.float32)
+def board_view(maps: Mapping[str, ProjectorMap], board: Board, *, interpolate: bool = False) -> BoardView:
+    """Find a board's points in one decoded pose and read the projector there.
 
-
-def board_view(maps: Mapping[str, ProjectorMap], inner_corners: tuple[int, int], *,
-               interpolate: bool = False) -> BoardView:
-    """Find a chessboard's corners in one decoded pose and read the projector there.
-
-    The corners come from the decoded `brightness` (the white frame;
-    `sliscan.targets.detect_chessboard`); each corner's projector ``(xp, yp)`` from a robust
-    local quadratic fit to the decoded pixels in a window of 0.8 corner spacings around it
-    (`sliscan.targets.local_fit`), which skips the black squares that do not decode.
+    The points come from the decoded `brightness` (the white frame; `Board.detect`: chessboard
+    corners or circle centres); each point's projector ``(xp, yp)`` from the decoded maps
+    (`sliscan.targets.projector_points`): a robust local quadratic fit to the decoded pixels in a
+    window around it (0.8 neighbour spacings wide for a corner, 1.2 for a circle), which skips the
+    black squares and dark discs that do not decode.
 
     Parameters
     ----------
     maps : {"columns": ProjectorMap, "rows": ProjectorMap}
-    inner_corners : (columns, rows) tuple of int
-        OpenCV's ``patternSize``, e.g. (9, 7).
+    board : Board
+        The board (kind and OpenCV's pattern size matter here).
     interpolate : bool
         See `sliscan.targets.projector_points` (False: the local fit everywhere).
 
     Raises
     ------
     InputError
-        The board is not found, or fewer than half its corners have projector coordinates.
+        The board is not found, or fewer than half its points have projector coordinates.
     """
-    corners = detect_chessboard(_brightness(maps), inner_corners)
-    cols, rows = inner_corners
-    if corners is None:
-        raise InputError(f"no chessboard of {cols}x{rows} inner corners found")
-    half_window = max(3, int(0.4 * corner_spacing(corners, inner_corners)))
-    projector = projector_points(maps, corners, half_window=half_window, interpolate=interpolate)
+    points = board.detect(_brightness(maps))
+    if points is None:
+        raise InputError(f"no {board.describe()} found")
+    half_window = max(3, int(_FIT_WINDOW[board.feature] * board.image_spacing(points)))
+    # A circle's centre lies in its dark disc, where decoding is noisiest: always the local fit.
+    projector = projector_points(maps, points, half_window=half_window, interpolate=interpolate and not board.circles)
     decoded = int(np.all(np.isfinite(projector), axis=1).sum())
-    if decoded < MIN_PROJECTOR_CORNERS * len(corners):
-        raise InputError(f"only {decoded} of {len(corners)} board corners have decoded projector coordinates")
-    return BoardView(corners, projector)
+    if decoded < MIN_PROJECTOR_CORNERS * len(points):
+        raise InputError(f"only {decoded} of {len(points)} board {board.feature}s have decoded projector coordinates")
+    return BoardView(points, projector)
 
 
 def _vector_rms(vectors: FloatArray) -> float:
@@ -720,7 +719,7 @@ def triangulate_correspondences(calibration: Calibration, camera_points: ArrayLi
                                 projector_points_: ArrayLike) -> FloatArray:
     """World points of camera <-> projector point pairs, both lens models applied.
 
-    Each device's pixels are undistorted to normalised coordinates (`cv2.undistortPoints`
+    Each device's pixels are undistorted to normalised coordinates (`sliscan.lens.undistort`
     with its ``intrinsics`` and ``distortion``; a device without intrinsics is a plain
     pinhole), then the two rays are intersected linearly (`cv2.triangulatePoints`).
 
@@ -742,149 +741,223 @@ def triangulate_correspondences(calibration: Calibration, camera_points: ArrayLi
             rays.append(pts[:, 0].T)
             extrinsics.append(device.matrix)
             continue
-        dist = np.zeros(5) if device.distortion is None else device.distortion
-        rays.append(cv2.undistortPoints(pts, device.intrinsics, dist)[:, 0].T.astype(np.float64))
+        ideal = pts[:, 0] if not has_distortion(device.distortion) else lens.undistort(
+            pts[:, 0], device.intrinsics, device.distortion)
+        rays.append(np.linalg.solve(device.intrinsics, np.c_[ideal, np.ones(len(ideal))].T)[:2])
         extrinsics.append(np.linalg.solve(device.intrinsics, device.matrix))
     homogeneous = cv2.triangulatePoints(extrinsics[0], extrinsics[1], rays[0], rays[1])
     return (homogeneous[:3] / homogeneous[3]).T
 
 
-def board_geometry(points: ArrayLike, inner_corners: tuple[int, int], square: float) -> dict[str, float]:
-    """How flat and how regular triangulated board corners are.
+def board_geometry(points: ArrayLike, board: Board) -> dict[str, float]:
+    """How flat and how regular triangulated board points are.
 
     Parameters
     ----------
     points : (N, 3) array
-        Corners in OpenCV's order, NaN where missing.
-    inner_corners : (columns, rows) tuple of int
-    square : float
-        The board's square size (the unit of `points`).
+        The board's points (corners, circle centres) in OpenCV's order, NaN where missing, in
+        the unit of ``board.spacing``.
+    board : Board
 
     Returns
     -------
     geometry : dict
-        ``planarity_rms``: RMS distance of the corners from their least-squares plane;
-        ``spacing_mean`` and ``spacing_std``: distance between neighbouring corners along
-        board rows and columns (all in the unit of `square`); ``spacing_error``: relative error
-        of the mean spacing, ``spacing_mean / square - 1``.
+        ``planarity_rms``: RMS distance of the points from their least-squares plane;
+        ``spacing_mean`` and ``spacing_std``: distance between neighbouring points
+        (`Board.neighbours`: along rows and columns, the asymmetric grid's diagonals), scaled
+        to the board's nominal `spacing` (all in its unit); ``spacing_error``: relative error
+        of the mean distance, ``spacing_mean / spacing - 1``.
     """
     pts = np.asarray(points, dtype=np.float64)
     finite = np.all(np.isfinite(pts), axis=1)
     centred = pts[finite] - pts[finite].mean(axis=0)
     normal = np.linalg.svd(centred, full_matrices=False)[2][2]
-    grid = pts.reshape(inner_corners[1], inner_corners[0], 3)
-    steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=a), axis=2).ravel() for a in (0, 1)])
-    steps = steps[np.isfinite(steps)]
+    pairs = board.neighbours()
+    ratio = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1) / board.nearest
+    steps = board.spacing * ratio[np.isfinite(ratio)]
     return {"planarity_rms": float(np.sqrt(np.mean((centred @ normal) ** 2))),
             "spacing_mean": float(steps.mean()), "spacing_std": float(steps.std()),
-            "spacing_error": float(steps.mean() / square - 1)}
+            "spacing_error": float(steps.mean() / board.spacing - 1)}
+
+
+@dataclass(frozen=True, eq=False)
+class _BoardFit:
+    """OpenCV's calibration of both devices from board views: intrinsics ``k``, distortion ``d``
+    and per-view board poses ``r`` (Rodrigues), ``t`` of the camera (``c``) and the projector
+    (``p``), and the projector's pose relative to the camera."""
+
+    kc: FloatArray
+    dc: FloatArray
+    rc: tuple[FloatArray, ...]
+    tc: tuple[FloatArray, ...]
+    kp: FloatArray
+    dp: FloatArray
+    rp: tuple[FloatArray, ...]
+    tp: tuple[FloatArray, ...]
+    rotation: FloatArray
+    translation: FloatArray
+    stereo_rms_px: float
+
+
+def _fit_board(objects: list[NDArray[np.float32]], camera: list[NDArray[np.float32]],
+               projector: list[NDArray[np.float32]], decoded: list[NDArray[np.bool_]], camera_size: tuple[int, int],
+               projector_size: tuple[int, int], projector_distortion: bool) -> _BoardFit:
+    """`calibrate_board`'s OpenCV calls on the points of every view (`objects`: the board's
+    points of each view; `camera`, `projector`: their images, `decoded`: which have projector
+    coordinates)."""
+    flags = cv2.CALIB_FIX_K3
+    projector_flags = flags if projector_distortion else (
+        flags | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST)
+    shared = [o[m] for o, m in zip(objects, decoded)]
+    _, kc, dc, rc, tc = cv2.calibrateCamera(objects, camera, tuple(camera_size), None, None, flags=flags)
+    _, kp, dp, rp, tp = cv2.calibrateCamera(shared, projector, tuple(projector_size), None, None,
+                                            flags=projector_flags)
+    stereo = cv2.stereoCalibrate(shared, [c[m] for c, m in zip(camera, decoded)], projector, kc, dc, kp, dp,
+                                 tuple(camera_size), flags=cv2.CALIB_FIX_INTRINSIC)
+    return _BoardFit(kc, dc.ravel()[:5], tuple(rc), tuple(tc), kp, dp.ravel()[:5], tuple(rp), tuple(tp),
+                     stereo[5], stereo[6].ravel(), float(stereo[0]))
+
+
+def _circle_bias(board: Board, fit: _BoardFit, view: int) -> tuple[FloatArray, FloatArray]:
+    """Perspective bias ``(N, 2)`` px of one view's circle centres in the camera and in the projector.
+
+    Camera: the centre of each circle's image ellipse (`ellipse_centres`, with the view's pose
+    and the pinhole ``Kc``) minus the image of its centre.  Projector: its coordinates are read
+    at the camera's ellipse centre, i.e. at the board point that the camera sees there (back
+    through the board plane's homography), so its bias is that point's projector image minus
+    the circle centre's (with the projector's lens).  Lens distortion changes these few
+    hundredths of a pixel by about its own relative size (~1 %): neglected.
+    """
+    layout = board.points().astype(np.float64)
+    rotation = cv2.Rodrigues(fit.rc[view])[0]
+    pose = np.c_[rotation, fit.tc[view].ravel()]
+    matrix = fit.kc @ pose
+    target = CircleTarget(layout, np.tile([0.0, 0.0, 1.0], (len(layout), 1)), board.radius)
+    ellipses = ellipse_centres(matrix, target)
+    camera_bias = ellipses - Device(matrix, (1, 1)).project(layout)
+    on_board = np.c_[ellipses, np.ones(len(layout))] @ np.linalg.inv(matrix[:, [0, 1, 3]]).T
+    seen = np.c_[on_board[:, :2] / on_board[:, 2:], np.zeros(len(layout))]
+    projector_pose = fit.rotation @ pose + np.c_[np.zeros((3, 3)), fit.translation]
+    projector = Device(fit.kp @ projector_pose, (1, 1), intrinsics=fit.kp, distortion=fit.dp)
+    return camera_bias, projector.project(seen) - projector.project(layout)
 
 
 @overload
-def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
-                    camera_size: tuple[int, int], projector_size: tuple[int, int], *,
-                    projector_distortion: bool = ..., with_residuals: Literal[False] = ...) -> Calibration: ...
+def calibrate_board(views: Sequence[BoardView], board: Board, camera_size: tuple[int, int],
+                    projector_size: tuple[int, int], *, projector_distortion: bool = ...,
+                    with_residuals: Literal[False] = ...) -> Calibration: ...
 
 
 @overload
-def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
-                    camera_size: tuple[int, int], projector_size: tuple[int, int], *,
-                    projector_distortion: bool = ..., with_residuals: Literal[True]
-                    ) -> tuple[Calibration, Residuals]: ...
+def calibrate_board(views: Sequence[BoardView], board: Board, camera_size: tuple[int, int],
+                    projector_size: tuple[int, int], *, projector_distortion: bool = ...,
+                    with_residuals: Literal[True]) -> tuple[Calibration, Residuals]: ...
 
 
-def calibrate_board(views: Sequence[BoardView], inner_corners: tuple[int, int], square: float,
-                    camera_size: tuple[int, int], projector_size: tuple[int, int], *,
-                    projector_distortion: bool = True,
+def calibrate_board(views: Sequence[BoardView], board: Board, camera_size: tuple[int, int],
+                    projector_size: tuple[int, int], *, projector_distortion: bool = True,
                     with_residuals: bool = False) -> Calibration | tuple[Calibration, Residuals]:
     """Calibrate camera and projector (intrinsics, lens distortion, relative pose) from board views.
 
-    The camera is calibrated from the corners of every view (`cv2.calibrateCamera`, Zhang's
-    method [4]_), the projector as an inverse camera from the corners that have projector
-    coordinates, then the projector's pose relative to the camera from the corners both have
+    The camera is calibrated from the points of every view (`cv2.calibrateCamera`, Zhang's
+    method [4]_), the projector as an inverse camera from the points that have projector
+    coordinates, then the projector's pose relative to the camera from the points both have
     (`cv2.stereoCalibrate` with both intrinsics fixed).  Distortion: ``k1, k2, p1, p2`` (``k3``
     fixed at 0: a few poses do not pin it down).  World = camera frame: the camera's matrix is
-    ``Kc [I | 0]``, the projector's ``Kp [R | t]`` (DESIGN.md), in the unit of `square`.
+    ``Kc [I | 0]``, the projector's ``Kp [R | t]`` (DESIGN.md), in the unit of ``board.spacing``.
+
+    A circle grid with its `radius` has the perspective bias of its centres removed
+    (`_circle_bias`, as `calibrate_target` does for the 3-D target [3]_): the calibration is
+    repeated twice with the camera and projector points corrected by the bias that the previous
+    one predicts.
 
     Parameters
     ----------
     views : sequence of BoardView
         At least `MIN_BOARD_VIEWS` poses (`board_view`).
-    inner_corners : (columns, rows) tuple of int
-    square : float
-        Board square size (mm, or any unit: the world unit of the result).
+    board : Board
+        The board (chessboard or circle grid, its spacing in mm or any unit: the world unit of
+        the result).
     camera_size, projector_size : (W, H) tuple of int
     projector_distortion : bool
-        Estimate the projector's lens distortion (True) or fix it at 0 (False: a calibration
-        that `sliscan.reconstruct` can use today, as it does not yet undistort the projector).
+        Estimate the projector's lens distortion (True) or fix it at 0 (False).
     with_residuals : bool
-        Also return every corner's residual vectors.
+        Also return every point's residual vectors.
 
     Returns
     -------
     calibration : Calibration
         Both devices with ``intrinsics`` and ``distortion``.  ``extra``: ``method``
-        (``"opencv-board"``), ``board`` (inner corners, square), ``residuals`` (camera and
-        projector RMS and max over every corner, px), ``stereo_rms_px``, ``views`` (per view:
-        ``camera_rms_px``, ``projector_rms_px``, ``corners``, ``projector_corners`` and the
-        `board_geometry` of its corners triangulated with the result) and ``outlier_views``
+        (``"opencv-board"``), ``board`` (`Board.to_dict`), ``residuals`` (camera and
+        projector RMS and max over every point, px), ``stereo_rms_px``, ``perspective_bias_px``
+        (the largest camera correction of a circle centre; 0 for a chessboard or a grid without
+        radius), ``views`` (per view: ``camera_rms_px``, ``projector_rms_px``, ``corners`` (the
+        board's points), ``projector_corners`` (those with projector coordinates) and the
+        `board_geometry` of its points triangulated with the result) and ``outlier_views``
         (indices of views whose camera or projector RMS exceeds twice the median view's and
         0.5 px).
     residuals : Residuals
         Only with ``with_residuals``: per view (``"view 0"``, ...), the camera's residual vectors
-        of every corner and the projector's of the decoded ones; their per-view RMS values are
+        of every point and the projector's of the decoded ones; their per-view RMS values are
         the ``views``' ``camera_rms_px`` and ``projector_rms_px``.
 
     Raises
     ------
     InputError
-        Too few views, or `square` not positive.
+        Too few views, or a view with another number of points than the board's.
     """
     if len(views) < MIN_BOARD_VIEWS:
         raise InputError(f"need at least {MIN_BOARD_VIEWS} board views, got {len(views)}")
-    if not square > 0:
-        raise InputError(f"the square size must be positive, got {square}")
-    board = board_points(inner_corners, square)
+    layout = board.points()
+    bad = [k for k, v in enumerate(views) if len(v.camera) != len(layout) or len(v.projector) != len(layout)]
+    if bad:
+        raise InputError(f"view {bad[0]} has {len(views[bad[0]].camera)} points, the {board.describe()} has "
+                         f"{len(layout)}")
     decoded = [np.all(np.isfinite(v.projector), axis=1) for v in views]
-    camera_images = [v.camera.astype(np.float32) for v in views]
-    objects = [board[m] for m in decoded]
-    projector_images = [v.projector[m].astype(np.float32) for v, m in zip(views, decoded)]
-    shared_camera = [c[m] for c, m in zip(camera_images, decoded)]
-    flags = cv2.CALIB_FIX_K3
-    projector_flags = flags if projector_distortion else (
-        flags | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST)
-    _, kc, dc, rc, tc = cv2.calibrateCamera([board] * len(views), camera_images, tuple(camera_size), None, None,
-                                            flags=flags)
-    _, kp, dp, rp, tp = cv2.calibrateCamera(objects, projector_images, tuple(projector_size), None, None,
-                                            flags=projector_flags)
-    stereo = cv2.stereoCalibrate(objects, shared_camera, projector_images, kc, dc, kp, dp, tuple(camera_size),
-                                 flags=cv2.CALIB_FIX_INTRINSIC)
-    rotation, translation = stereo[5], stereo[6]
-    camera = Device(kc @ np.eye(3, 4), camera_size, intrinsics=kc, distortion=dc.ravel()[:5])
-    projector = Device(kp @ np.c_[rotation, translation], projector_size, intrinsics=kp, distortion=dp.ravel()[:5])
-    camera_vectors = _view_residuals([board] * len(views), camera_images, rc, tc, kc, dc)
-    projector_vectors = _view_residuals(objects, projector_images, rp, tp, kp, dp)
+    objects = [layout] * len(views)
+    camera_points = [v.camera.astype(np.float64) for v in views]
+    projector_points_ = [v.projector.astype(np.float64) for v in views]
+    bias = [np.zeros_like(c) for c in camera_points]
+    corrected = board.radius is not None
+    for step in range(_BIAS_ITERATIONS + 1 if corrected else 1):
+        if step:
+            biases = [_circle_bias(board, fit, k) for k in range(len(views))]
+            bias = [b[0] for b in biases]
+            camera_points = [v.camera - b[0] for v, b in zip(views, biases)]
+            projector_points_ = [v.projector - b[1] for v, b in zip(views, biases)]
+        camera_images = [c.astype(np.float32) for c in camera_points]
+        projector_images = [p[m].astype(np.float32) for p, m in zip(projector_points_, decoded)]
+        fit = _fit_board(objects, camera_images, projector_images, decoded, camera_size, projector_size,
+                         projector_distortion)
+    camera = Device(fit.kc @ np.eye(3, 4), camera_size, intrinsics=fit.kc, distortion=fit.dc)
+    projector = Device(fit.kp @ np.c_[fit.rotation, fit.translation], projector_size, intrinsics=fit.kp,
+                       distortion=fit.dp)
+    camera_vectors = _view_residuals(objects, camera_images, fit.rc, fit.tc, fit.kc, fit.dc)
+    projector_vectors = _view_residuals([layout[m] for m in decoded], projector_images, fit.rp, fit.tp, fit.kp,
+                                        fit.dp)
     camera_rms = [_vector_rms(v) for v in camera_vectors]
     projector_rms = [_vector_rms(v) for v in projector_vectors]
     camera_errors = np.linalg.norm(np.concatenate(camera_vectors), axis=1)
     projector_errors = np.linalg.norm(np.concatenate(projector_vectors), axis=1)
     calibration = Calibration(camera, projector)
     per_view = []
-    for k, view in enumerate(views):
-        points = np.full((len(board), 3), np.nan)
-        points[decoded[k]] = triangulate_correspondences(calibration, view.camera[decoded[k]],
-                                                         view.projector[decoded[k]])
+    for k in range(len(views)):
+        points = np.full((len(layout), 3), np.nan)
+        points[decoded[k]] = triangulate_correspondences(calibration, camera_points[k][decoded[k]],
+                                                         projector_points_[k][decoded[k]])
         per_view.append({"camera_rms_px": camera_rms[k], "projector_rms_px": projector_rms[k],
-                         "corners": len(board), "projector_corners": int(decoded[k].sum()),
-                         **board_geometry(points, inner_corners, square)})
+                         "corners": len(layout), "projector_corners": int(decoded[k].sum()),
+                         **board_geometry(points, board)})
     limits = [max(_OUTLIER_FACTOR * float(np.median(rms)), _OUTLIER_FLOOR_PX) for rms in (camera_rms, projector_rms)]
     outliers = [k for k in range(len(views)) if camera_rms[k] > limits[0] or projector_rms[k] > limits[1]]
-    extra = {"method": "opencv-board", "board": {"inner_corners": list(inner_corners), "square": float(square)},
+    extra = {"method": "opencv-board", "board": board.to_dict(),
              "residuals": {"camera": summarize_residuals(camera_errors),
                            "projector": summarize_residuals(projector_errors)},
-             "stereo_rms_px": float(stereo[0]), "views": per_view, "outlier_views": outliers}
+             "stereo_rms_px": fit.stereo_rms_px,
+             "perspective_bias_px": float(max(np.linalg.norm(b, axis=1).max() for b in bias)),
+             "views": per_view, "outlier_views": outliers}
     result = Calibration(camera, projector, extra)
     if not with_residuals:
         return result
     labels = tuple(f"view {k}" for k in range(len(views)))
-    return result, Residuals(labels, tuple(camera_vectors), tuple(projector_vectors), "corner")
+    return result, Residuals(labels, tuple(camera_vectors), tuple(projector_vectors), board.feature)

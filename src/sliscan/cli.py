@@ -45,7 +45,7 @@ from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
 from sliscan.pipeline import Scanner, ScanStages
 from sliscan.report import require_report
-from sliscan.targets import CircleTarget
+from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
 
 #: Exit status for bad input (a usage error, an unreadable or inconsistent file).
@@ -1144,25 +1144,41 @@ Examples:
   sliscan calibrate G.byt --camera-size 2592x1944 --projector 1024x768 -o rig.json
   sliscan calibrate G.txt --camera-size 2592x1944 --projector 1024x768 --method lstsq -o rig.json \\
       --cam-txt cam.txt --proj-txt proj.txt
-  sliscan calibrate grid.csv --camera-size 640x480 --projector 1024x768 --pixels -o rig.json""")
-@click.argument("g_file", type=INPUT_FILE)
-@_camera_option(required=True, help="Camera image size, e.g. 2592x1944.")
-@_projector_option(required=True, help="Projector size, e.g. 1024x768.")
+  sliscan calibrate grid.csv --camera-size 640x480 --projector 1024x768 --pixels -o rig.json
+\b
+From captured images instead of measured points, use the command of your target (each has
+the options it needs, and writes the same calibration JSON):
+  sliscan calibrate-target cap/ --pattern pmp.json --target target.json -o rig.json   # 3-D circle target
+  sliscan calibrate-board pose_*/ --pattern gc.json --board 9x7 --square 25 -o rig.json  # planar board""")
+@click.argument("g_file", nargs=-1, required=True, metavar="G_FILE", type=click.Path(path_type=Path))
+@_camera_option(help="Camera image size, e.g. 2592x1944 (required).")
+@_projector_option(help="Projector size, e.g. 1024x768 (required).")
 @click.option("--method", type=click.Choice(["svd", "lstsq"]), default="svd", show_default=True,
               help="DLT by SVD (thesis 4.3) or by least squares with m34 = 1 (4.4).")
 @click.option("--pixels", is_flag=True, help="The G file's projector columns are pixels, not phases in radians.")
-@click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
+@click.option("-o", "--output", type=OUTPUT_FILE, help="Calibration JSON to write (required).")
 @click.option("--cam-txt", type=OUTPUT_FILE, help="Also write the camera matrix as text (the thesis's cam.txt).")
 @click.option("--proj-txt", type=OUTPUT_FILE, help="Also write the projector matrix as text (proj.txt).")
 @_overwrite_option
-def calibrate(g_file: Path, camera: tuple[int, int], projector: tuple[int, int], method: str, pixels: bool,
-              output: Path, cam_txt: Path | None, proj_txt: Path | None, overwrite: bool) -> None:
+def calibrate(g_file: Any, camera: tuple[int, int] | None, projector: tuple[int, int] | None, method: str,
+              pixels: bool, output: Path | None, cam_txt: Path | None, proj_txt: Path | None, overwrite: bool) -> None:
     """Calibrate camera and projector from a calibration grid (a G file, thesis 4.3-4.4).
 
     G_FILE holds one point per row: Xw Yw Zw (mm), xc yc (camera pixels), xp yp (projector
     phases in radians, x = phase * size / 2pi, or pixels with --pixels); binary .byt (float32)
-    or text.  Prints the reprojection residuals.
+    or text.  Prints the reprojection residuals.  Captured calibration images go to
+    calibrate-target or calibrate-board (see below).
     """
+    images = [p for p in g_file if p.is_dir() or p.suffix.lower() in IMAGE_SUFFIXES or any(c in str(p) for c in "*?[")]
+    if images or len(g_file) > 1:
+        raise InputError(f"{(images or g_file)[0]}: captured images, not a G file; calibrate from images with sliscan "
+                         "calibrate-board (a planar board in several poses) or sliscan calibrate-target (a 3-D circle "
+                         "target)")
+    g_file = g_file[0]
+    # Checked here, after the images, so that images get the message above whatever else is missing.
+    for value, option in ((camera, "--camera-size"), (projector, "--projector"), (output, "--output")):
+        if value is None:
+            raise click.UsageError(f"Missing option '{option}'.")
     _check_outputs([output, cam_txt, proj_txt], [g_file], overwrite=overwrite)
     rows = premat5.read_g(g_file)
     with _about(g_file):
@@ -1295,9 +1311,9 @@ def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path
 
 
 def _board_table(calib: Calibration, poses: Sequence[Path]) -> Table:
-    """Per-view reprojection RMS and the geometry of the triangulated corners."""
+    """Per-view reprojection RMS and the geometry of the triangulated board points."""
     table = Table(title="board views")
-    for name in ("pose", "camera RMS px", "projector RMS px", "corners", "flatness RMS", "spacing error"):
+    for name in ("pose", "camera RMS px", "projector RMS px", "points", "flatness RMS", "spacing error"):
         table.add_column(name, justify="left" if name == "pose" else "right")
     for k, (pose, view) in enumerate(zip(poses, calib.extra["views"])):
         flag = " (outlier)" if k in calib.extra["outlier_views"] else ""
@@ -1307,54 +1323,89 @@ def _board_table(calib: Calibration, poses: Sequence[Path]) -> Table:
     return table
 
 
+#: The options that describe a planar board beside its size (calibrate-board, acquire).
+_board_options = _options(
+    click.option("--square", type=POSITIVE, help="Chessboard: the square size (mm, or any unit: the unit of the "
+                                                 "world coordinates)."),
+    click.option("--circles", type=click.Choice(["symmetric", "asymmetric"]),
+                 help="The board is an OpenCV circle grid (dark circles on white), symmetric or asymmetric, instead "
+                      "of a chessboard."),
+    click.option("--spacing", type=POSITIVE,
+                 help="Circle grid: distance between neighbouring circles of a row (symmetric) or between rows "
+                      "(asymmetric: OpenCV's spacing, circles of a row 2 x SPACING apart), in mm."),
+    click.option("--radius", type=POSITIVE,
+                 help="Circle grid: the circles' radius in mm, to correct the perspective bias of their centres."),
+)
+
+
+def _board(size: tuple[int, int], square: float | None, circles: str | None, spacing: float | None,
+           radius: float | None, *, size_option: str = "--board") -> Board:
+    """The `Board` of the board options, checked: a chessboard takes --square, a circle grid
+    (--circles) --spacing and optionally --radius."""
+    if circles is None:
+        if square is None or spacing is not None or radius is not None:
+            raise click.UsageError(f"a chessboard ({size_option} with no --circles) takes --square (the square size), "
+                                   "not --spacing or --radius")
+        return Board("chessboard", size, square)
+    if spacing is None or square is not None:
+        raise click.UsageError(f"a circle grid (--circles {circles}) takes --spacing (the circle spacing), "
+                               "not --square")
+    return Board(circles, size, spacing, radius)
+
+
 @cli.command("calibrate-board", epilog="""\b
 Examples:
   sliscan calibrate-board pose_0/ pose_1/ pose_2/ --pattern gc/gc.json --board 9x7 --square 75 -o rig.json
   sliscan calibrate-board capture_* --pattern gc.json --board 9x7 --square 25 --no-projector-distortion -o rig.json
+  sliscan calibrate-board pose_*/ --pattern pmp.json --board 4x11 --circles asymmetric --spacing 20 --radius 5 \\
+      -o rig.json
 \b
 Each POSE is a folder holding the frames of one board pose, sorted by name in the pattern's
 order (OpenCV's Gray code order for kind graycode: column bits, row bits, each pattern then its
-inverse, then white and black).""")
+inverse, then white and black).  Boards are OpenCV's: a chessboard (--board: inner corners per
+row and per column, --square) or a circle grid (--circles symmetric|asymmetric, --board: circles
+per row and rows, e.g. 4x11 asymmetric, --spacing).""")
 @click.argument("poses", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, required=True,
               help="PatternSpec JSON of the sequence (pmp or graycode, orientation both).")
 @click.option("--board", type=SIZE, required=True,
-              help="Inner corners of the chessboard, COLUMNSxROWS (OpenCV's pattern size), e.g. 9x7.")
-@click.option("--square", type=POSITIVE, required=True,
-              help="Square size (mm, or any unit: the unit of the world coordinates).")
+              help="OpenCV's pattern size COLUMNSxROWS: a chessboard's inner corners (e.g. 9x7), a circle grid's "
+                   "circles per row and rows (e.g. 4x11).")
+@_board_options
 @click.option("--projector-distortion/--no-projector-distortion", default=True, show_default=True,
-              help="Estimate the projector's lens distortion, or fix it at 0 (sliscan scan cannot yet undistort "
-                   "the projector).")
+              help="Estimate the projector's lens distortion, or fix it at 0.")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="Calibration JSON to write.")
 @click.option("--plot", type=OUTPUT_FILE,
               help="Also write a PNG of the camera and projector residuals of each pose (needs sliscan[plot]).")
 @click.option("--residuals", "residuals_path", type=OUTPUT_FILE,
-              help="Also write every corner's residual vectors per pose as JSON (for sliscan report --residuals).")
+              help="Also write every point's residual vectors per pose as JSON (for sliscan report --residuals).")
 @_overwrite_option
-def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tuple[int, int], square: float,
-                        projector_distortion: bool, output: Path, plot: Path | None, residuals_path: Path | None,
-                        overwrite: bool) -> None:
-    """Calibrate camera and projector (intrinsics, lens distortion, pose) from chessboard poses.
+def calibrate_board_cmd(poses: tuple[Path, ...], pattern_path: Path, board: tuple[int, int], square: float | None,
+                        circles: str | None, spacing: float | None, radius: float | None, projector_distortion: bool,
+                        output: Path, plot: Path | None, residuals_path: Path | None, overwrite: bool) -> None:
+    """Calibrate camera and projector (intrinsics, lens distortion, pose) from board poses.
 
-    Per POSE: the board's inner corners are found in the white frame and each corner's projector
-    coordinates are fitted to the decoded pixels around it; then OpenCV calibrates the camera,
-    the projector as an inverse camera, and their relative pose.  The calibration JSON has the
-    world in the camera frame: matrix = K [R | t] with intrinsics and distortion.  A pose whose
-    board is not found (or does not decode, or lacks frames) is skipped with a warning while at
-    least 3 good poses remain.  Prints per-pose reprojection RMS, outlier poses, and the
-    flatness and corner spacing of the board triangulated with the result.
+    Per POSE: the board's points (chessboard inner corners or circle centres) are found in the
+    white frame and each point's projector coordinates are fitted to the decoded pixels around
+    it; then OpenCV calibrates the camera, the projector as an inverse camera, and their
+    relative pose.  The calibration JSON has the world in the camera frame: matrix = K [R | t]
+    with intrinsics and distortion (sliscan scan and sliscan simulate use both lenses).  A pose
+    whose board is not found (or does not decode, or lacks frames) is skipped with a warning
+    while at least 3 good poses remain.  Prints per-pose reprojection RMS, outlier poses, and
+    the flatness and point spacing of the board triangulated with the result.
     """
+    layout = _board(board, square, circles, spacing, radius)
     spec = _sequence_spec(pattern_path)
     pose_files = {pose: _capture_files([pose]) for pose in poses}
     _check_outputs([output, plot, residuals_path], [pattern_path, *(f for files in pose_files.values() for f in files)],
                    overwrite=overwrite)
     if plot is not None:
         require_matplotlib()
-    _run_calibrate_board(pose_files, spec, board, square, projector_distortion=projector_distortion, output=output,
+    _run_calibrate_board(pose_files, spec, layout, projector_distortion=projector_distortion, output=output,
                          plot=plot, residuals_path=residuals_path)
 
 
-def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, board: tuple[int, int], square: float,
+def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, board: Board,
                          *, projector_distortion: bool, output: Path, plot: Path | None = None,
                          residuals_path: Path | None = None) -> None:
     """`calibrate-board` once its inputs are checked (also the end of `sliscan acquire
@@ -1383,18 +1434,20 @@ def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, 
             raise InputError(f"only {len(views)} of {len(poses)} poses are usable; calibration needs at least "
                              f"{MIN_BOARD_VIEWS}")
         stage("calibrate")
-        calib, residuals = calibrate_board(views, board, square, (shape[1], shape[0]), spec.projector_size,
+        calib, residuals = calibrate_board(views, board, (shape[1], shape[0]), spec.projector_size,
                                            projector_distortion=projector_distortion, with_residuals=True)
         calib.save(output)
     written = [str(output)]
     residuals = Residuals(tuple(p.name for p in used), residuals.camera, residuals.projector, residuals.points)
     written += _save_residuals(residuals, plot, residuals_path,
-                               title=f"calibrate-board: {len(views)} poses, {board[0]}x{board[1]} corners")
+                               title=f"calibrate-board: {len(views)} poses, {board.describe()}")
     Console().print(_board_table(calib, used))
     outliers = calib.extra["outlier_views"]
     flagged = f"; outlier poses: {', '.join(str(used[k]) for k in outliers)}" if outliers else ""
-    click.echo(f"wrote {', '.join(written)}: {len(views)} of {len(poses)} poses, {board[0]}x{board[1]} corners; reprojection "
-               f"{_residual_summary(calib)}; stereo RMS {calib.extra['stereo_rms_px']:.3g} px{flagged}")
+    bias = calib.extra["perspective_bias_px"]
+    corrected = f" (perspective bias {bias:.2g} px corrected)" if board.radius is not None else ""
+    click.echo(f"wrote {', '.join(written)}: {len(views)} of {len(poses)} poses, {board.describe()}{corrected}; "
+               f"reprojection {_residual_summary(calib)}; stereo RMS {calib.extra['stereo_rms_px']:.3g} px{flagged}")
 
 
 # --------------------------------------------------------------------------------------------

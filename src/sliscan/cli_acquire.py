@@ -27,12 +27,12 @@ from sliscan import acquire, devices, motion, patterns, sequences, simulate
 from sliscan._validate import InputError, write_image
 from sliscan.acquire import RECORD_NAME, Session, capture_paths, write_record
 from sliscan.calibrate import MIN_BOARD_VIEWS
-from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCENES, SIZE, _check_outputs,
-                         _check_projector, _conditions, _options, _overwrite_option, _progress, _run_calibrate_board,
-                         _run_calibrate_target, _sequence_spec, cli)
+from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCENES, SIZE, _board, _board_options,
+                         _check_outputs, _check_projector, _conditions, _options, _overwrite_option, _progress,
+                         _run_calibrate_board, _run_calibrate_target, _sequence_spec, cli)
 from sliscan.formats.calibration import load_calibration
 from sliscan.pipeline import Scanner
-from sliscan.targets import CircleTarget
+from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, PatternSpec
 
 #: ``--camera`` / ``--screen`` value of the virtual rig.
@@ -247,6 +247,7 @@ Examples:
   sliscan scan take/acquisition.json --calibration rig.json --ply take.ply
   sliscan acquire --pattern cp.json --camera 0 --screen 1 --average 4 -o cp-take
   sliscan acquire --pattern gc.json --calibration-board 9x7 --square 25 --poses 6 -o cal   # -> cal/rig.json
+  sliscan acquire --pattern gc.json --calibration-board 4x11 --circles asymmetric --spacing 20 --poses 8 -o cal
   sliscan acquire --pattern pmp.json --calibration-target target.json -o cal-target
 \b
 Without hardware (the virtual rig, a virtual clock):
@@ -271,8 +272,9 @@ Without hardware (the virtual rig, a virtual clock):
 @click.option("--calibration-target", "target_path", type=INPUT_FILE,
               help="Capture and calibrate with this 3-D circle target (target JSON, as calibrate-target; one pose).")
 @click.option("--calibration-board", "board", type=SIZE,
-              help="Capture and calibrate with a chessboard of COLUMNSxROWS inner corners (as calibrate-board).")
-@click.option("--square", type=POSITIVE, help="With --calibration-board: the square size in mm.")
+              help="Capture and calibrate with a planar board of OpenCV's pattern size COLUMNSxROWS (as "
+                   "calibrate-board: a chessboard's inner corners, or with --circles a circle grid's circles).")
+@_board_options
 @click.option("--poses", type=click.IntRange(min=1),
               help=f"With --calibration-board: board poses [{BOARD_POSES}], at least {MIN_BOARD_VIEWS}.")
 @click.option("--yes", is_flag=True, help="Do not wait for Enter between poses (virtual: the target moves itself).")
@@ -287,9 +289,9 @@ Without hardware (the virtual rig, a virtual clock):
 def acquire_cmd(pattern_path: Path | None, camera_id: str, screen: str, resolution: tuple[int, int] | None,
                 exposure: float | None, gain: float | None, settle_s: float, output: Path | None, average: int,
                 verify: str, retakes: int, list_: bool, measure_settle: bool, target_path: Path | None,
-                board: tuple[int, int] | None, square: float | None, poses: int | None, yes: bool,
-                projector_distortion: bool, write_calibration: Path | None, virtual_rig: Path | None,
-                overwrite: bool, **virtual_args: Any) -> None:
+                board: tuple[int, int] | None, square: float | None, circles: str | None, spacing: float | None,
+                radius: float | None, poses: int | None, yes: bool, projector_distortion: bool,
+                write_calibration: Path | None, virtual_rig: Path | None, overwrite: bool, **virtual_args: Any) -> None:
     """Project a pattern with a projector, grab it with a camera, and save the captures.
 
     Each image of the pattern is shown full-screen on --screen, and after --settle seconds the
@@ -320,13 +322,14 @@ def acquire_cmd(pattern_path: Path | None, camera_id: str, screen: str, resoluti
                                         gain=gain, virtual=virtual, rig=rig, projector=projector, **kw)
     if board is not None or target_path is not None:
         _acquire_calibration(spec, pattern_path, output, opened, settings, virtual=virtual, board=board,
-                             square=square, poses=poses, target_path=target_path, yes=yes,
+                             board_options=dict(square=square, circles=circles, spacing=spacing, radius=radius),
+                             poses=poses, target_path=target_path, yes=yes,
                              projector_distortion=projector_distortion, write_calibration=write_calibration,
                              inputs=[virtual_rig], overwrite=overwrite)
         return
-    if square is not None or poses is not None or write_calibration is not None:
-        raise click.UsageError("--square, --poses and --write-calibration go with --calibration-board or "
-                               "--calibration-target")
+    if any(v is not None for v in (square, circles, spacing, radius, poses, write_calibration)):
+        raise click.UsageError("--square, --circles, --spacing, --radius, --poses and --write-calibration go with "
+                               "--calibration-board or --calibration-target")
     images = _pattern_images(spec)
     paths = capture_paths(output, len(images))
     _check_outputs([*paths, output / RECORD_NAME], [pattern_path, virtual_rig], overwrite=overwrite)
@@ -358,7 +361,7 @@ def _measure_settle(camera_id: str, screen: str, resolution: tuple[int, int] | N
 
 def _acquire_calibration(spec: PatternSpec, pattern_path: Path | None, output: Path, opened: Any,
                          settings: dict[str, Any], *, virtual: _Virtual, board: tuple[int, int] | None,
-                         square: float | None, poses: int | None, target_path: Path | None, yes: bool,
+                         board_options: dict[str, Any], poses: int | None, target_path: Path | None, yes: bool,
                          projector_distortion: bool, write_calibration: Path | None, inputs: list[Path | None],
                          overwrite: bool) -> None:
     """`sliscan acquire --calibration-board/--calibration-target`: capture every pose, then
@@ -367,16 +370,17 @@ def _acquire_calibration(spec: PatternSpec, pattern_path: Path | None, output: P
     if (board is None) == (target_path is None):
         raise click.UsageError("give --calibration-board or --calibration-target, not both")
     spec = _sequence_spec(pattern_path)
+    layout = None
     if board is not None:
-        if square is None:
-            raise click.UsageError("--calibration-board needs --square (the square size in mm)")
+        layout = _board(board, **board_options, size_option="--calibration-board")
         poses = BOARD_POSES if poses is None else poses
         if poses < MIN_BOARD_VIEWS:
             raise click.UsageError(f"--poses {poses}: a board calibration needs at least {MIN_BOARD_VIEWS} poses")
         target = None
     else:
-        if poses not in (None, 1) or square is not None:
-            raise click.UsageError("a circle target is calibrated from one pose: leave out --poses and --square")
+        if poses not in (None, 1) or any(v is not None for v in board_options.values()):
+            raise click.UsageError("a circle target is calibrated from one pose: leave out --poses, and --square, "
+                                   "--circles, --spacing and --radius (they describe a --calibration-board)")
         poses, target = 1, CircleTarget.load(target_path)  # type: ignore[arg-type]
     images = _pattern_images(spec)
     folders = [output / f"pose_{k:02d}" for k in range(poses)]
@@ -389,7 +393,7 @@ def _acquire_calibration(spec: PatternSpec, pattern_path: Path | None, output: P
         session = _session(devs, **settings)
         for k, (folder, paths) in enumerate(pose_files.items()):
             if devs.stage is not None:
-                devs.stage.move(*_virtual_pose(devs.stage.rig, virtual, k, board, square))
+                devs.stage.move(*_virtual_pose(devs.stage.rig, virtual, k, layout))
             if not yes:
                 click.prompt(f"pose {k + 1} of {poses}: place the {what}"
                              f"{' (turned differently from the last pose)' if k else ''} and press Enter",
@@ -399,23 +403,30 @@ def _acquire_calibration(spec: PatternSpec, pattern_path: Path | None, output: P
                 write_record(folder, spec, [s.raw for s in shots], _record_info(session, devs, shots, paths))
             click.echo(f"pose {k + 1} of {poses}: wrote {folder}/ ({len(paths)} captures, {_retake_summary(shots)})")
     if board is not None:
-        _run_calibrate_board(pose_files, spec, board, square, projector_distortion=projector_distortion,  # type: ignore[arg-type]
+        assert layout is not None
+        _run_calibrate_board(pose_files, spec, layout, projector_distortion=projector_distortion,
                              output=calibration_out)
     else:
         _run_calibrate_target(pose_files[folders[0]], spec, pattern_path, target, target_path,  # type: ignore[arg-type]
                               method="svd", output=calibration_out)
 
 
-def _virtual_pose(rig: simulate.Rig, virtual: _Virtual, k: int, board: tuple[int, int] | None,
-                  square: float | None) -> tuple[simulate.Surface, simulate.Conditions]:
-    """Pose `k` of the virtual calibration target: a chessboard turned by `VIRTUAL_BOARD_TILTS`,
-    or the thesis's circle target (`simulate.circle_target_scene`)."""
+def _virtual_pose(rig: simulate.Rig, virtual: _Virtual, k: int,
+                  board: Board | None) -> tuple[simulate.Surface, simulate.Conditions]:
+    """Pose `k` of the virtual calibration target: a board turned by `VIRTUAL_BOARD_TILTS` (a
+    circle grid without a radius gets circles a quarter of their distance across), or the
+    thesis's circle target (`simulate.circle_target_scene`)."""
     distance = rig.working_distance_mm
+    tilt = VIRTUAL_BOARD_TILTS[k % len(VIRTUAL_BOARD_TILTS)]
     if board is None:
         scene, albedo, _ = simulate.circle_target_scene(distance_mm=distance)
+    elif board.circles:
+        radius = board.radius if board.radius is not None else board.nearest / 4
+        scene, albedo, _ = simulate.circle_grid_scene(dataclasses.replace(board, radius=radius), tilt_deg=tilt,
+                                                      distance_mm=distance)
     else:
-        scene, albedo = simulate.board_scene(tilt_deg=VIRTUAL_BOARD_TILTS[k % len(VIRTUAL_BOARD_TILTS)],
-                                             distance_mm=distance, inner_corners=board, square_mm=square or 30.0)
+        scene, albedo = simulate.board_scene(tilt_deg=tilt, distance_mm=distance, inner_corners=board.size,
+                                             square_mm=board.spacing)
     return scene, virtual.conditions(albedo)
 
 

@@ -24,6 +24,7 @@ import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import scipy.ndimage
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
@@ -345,3 +346,62 @@ def carrier_transfer(spec: PatternSpec, conditions: Conditions, truth: GroundTru
                 * np.mean(np.cos(2 * np.pi * np.outer(fc, offsets)), axis=1)
                 * np.exp(-2 * np.pi**2 * conditions.camera_blur_px**2 * fc**2))
     return transfer / transfer.max()
+
+
+def clean_pixels(truth: GroundTruth, *, margin_px: int = 3, max_slope: float = 2.0) -> NDArray[np.bool_]:
+    """Pixels whose ground truth a scan can fairly be held to, for comparing calibrations.
+
+    Lit, not an `GroundTruth.edge`, at least `margin_px` pixels from any pixel that is not (the
+    camera's blur mixes a depth or shadow edge into its neighbours: 3 px is 3 sigma of the
+    default 1 px blur), and where one camera pixel spans at most `max_slope` projector pixels
+    in either coordinate (on steeper, grazing surfaces the fringes alias within a pixel and a
+    decoder's error is not the calibration's).
+
+    Returns
+    -------
+    (H, W) bool array
+    """
+    clean = truth.lit & ~truth.edge
+    if margin_px > 0:
+        clean = scipy.ndimage.binary_erosion(clean, iterations=margin_px)
+    slope = np.zeros(clean.shape)
+    for k in range(2):
+        gy, gx = np.gradient(truth.proj[..., k].astype(np.float64))
+        slope = np.fmax(slope, np.hypot(gx, gy))
+    return clean & (slope < max_slope)
+
+
+def rigid_alignment(points: ArrayLike, truth: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The rotation and translation that best map `points` onto `truth` (least squares; Kabsch).
+
+    A board calibration's world is its own estimate of the camera frame, whose orientation rests
+    on the camera's principal point (uncertain by about a pixel for a narrow lens: a rotation of
+    about 1 mrad): comparing shapes, not that frame, means comparing after this alignment.
+
+    Parameters
+    ----------
+    points, truth : (N, 3) arrays
+        Corresponding points (mm), N >= 3, not collinear.
+
+    Returns
+    -------
+    rotation : (3, 3) float64 array
+    translation : (3,) float64 array
+        ``truth ~ points @ rotation.T + translation``.
+
+    Examples
+    --------
+    >>> p = np.random.default_rng(0).normal(size=(10, 3))
+    >>> turn = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    >>> r, t = rigid_alignment(p, p @ turn.T + [1, 2, 3])
+    >>> bool(np.allclose(r, turn) and np.allclose(t, [1, 2, 3]))
+    True
+    """
+    a, b = np.asarray(points, dtype=np.float64), np.asarray(truth, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape != b.shape or len(a) < 3:
+        raise InputError(f"points and truth must be (N, 3) arrays of one shape with N >= 3, got {a.shape}, {b.shape}")
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = (u @ flip @ vt).T
+    return rotation, cb - ca @ rotation.T

@@ -162,7 +162,8 @@ class Scanner:
         (``pmp``, ``graycode``: a capture sequence per scan).  For orientation ``"both"`` the
         scan triangulates the direction of the rig's `baseline_direction` (rows on the thesis's
         rig, columns with the projector beside the camera); `sliscan.sequences.decode_frames`
-        gives both projector coordinates.
+        gives both projector coordinates; with projector lens distortion the other one
+        undistorts the projector exactly (`sliscan.reconstruct.triangulate`).
     calibration : Calibration
         Camera and projector matrices; the capture must have the camera's size.
     method : {"window", "bandpass"}
@@ -311,8 +312,10 @@ class Scanner:
         maps = decode_frames(frames, self.spec, shape=self.calibration.camera.shape, **self.decode_options)
         direction = baseline_direction(self.calibration) if self.spec.orientation == "both" else self.spec.orientation
         decoded = maps[direction]
+        # Orientation "both": the other coordinate lets a distorted projector be undistorted exactly.
+        other = next((m.coord for d, m in maps.items() if d != direction), None)
         t1 = time.perf_counter()
-        points = self.triangulator(direction)(decoded.coord, decoded.valid)
+        points = self.triangulator(direction)(decoded.coord, decoded.valid, other=other)
         valid = self._measurable(points, decoded.coord, decoded.valid, direction)
         t2 = time.perf_counter()
         result = ScanResult(points=points, valid=valid, texture=texture_from_dc(decoded.brightness),

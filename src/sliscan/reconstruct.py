@@ -14,14 +14,14 @@ solved for every pixel at once with the adjugate (Cramer's rule) in float64.
 
 from __future__ import annotations
 
-
-import cv2
 import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sliscan import lens
 from sliscan._validate import InputError
 from sliscan._threads import default_workers, over_rows
+from sliscan.lens import has_distortion
 from sliscan.types import ORIENTATIONS, Calibration, Device
 
 # |det C| / (|c1| |c2| |c3|) is the volume spanned by the three unit plane normals (1 when they
@@ -29,29 +29,71 @@ from sliscan.types import ORIENTATIONS, Calibration, Device
 # reported as NaN: it is ~1e6 times more sensitive to the projector coordinate than a right angle.
 MIN_PLANE_SINE = 1e-6
 
-# Iterative undistortion: stop after 50 iterations or when the point moves less than 1e-10 px.
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
-
 
 def _check_setup(calibration: Calibration, orientation: str) -> None:
     if orientation not in ORIENTATIONS:
         raise InputError(f"orientation must be one of {ORIENTATIONS}, got {orientation!r}")
-    if calibration.projector.distortion is not None and np.any(calibration.projector.distortion):
-        raise InputError("projector lens distortion is not supported yet (the calibration has nonzero projector "
-                         "distortion)")
-    camera = calibration.camera
-    if camera.distortion is not None and np.any(camera.distortion) and camera.intrinsics is None:
-        raise InputError("the camera has lens distortion but no intrinsics (K) to undistort with")
+    for name in ("camera", "projector"):
+        device = getattr(calibration, name)
+        if has_distortion(device.distortion) and device.intrinsics is None:
+            raise InputError(f"the {name} has lens distortion but no intrinsics (K) to undistort with")
 
 
 def _undistort(camera: Device, xc: NDArray[np.float64], yc: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
-    """Observed camera pixels -> pixels of the ideal pinhole ``K [R | t]`` (OpenCV, ``P = K``)."""
-    if camera.distortion is None or not np.any(camera.distortion) or xc.size == 0:
+    """Observed camera pixels -> pixels of the ideal pinhole ``K [R | t]`` (`sliscan.lens.undistort`)."""
+    if not has_distortion(camera.distortion) or xc.size == 0:
         return xc, yc
-    src = np.stack([xc, yc], axis=-1).reshape(-1, 1, 2)
-    dst = cv2.undistortPoints(src, camera.intrinsics, camera.distortion, R=None, P=camera.intrinsics,
-                              criteria=_UNDISTORT_CRITERIA)
-    return dst[:, 0, 0].astype(np.float64), dst[:, 0, 1].astype(np.float64)
+    ideal = lens.undistort(np.stack([xc, yc], axis=-1), camera.intrinsics, camera.distortion)
+    return ideal[..., 0], ideal[..., 1]
+
+
+# --- projector lens distortion (issue 5) ------------------------------------------------------
+# A decoded projector coordinate is an observed (distorted) pixel; the 3x3 system below needs the
+# ideal pinhole one.  With both projector coordinates the point is undistorted exactly
+# (`sliscan.lens.undistort`); with one, the ideal point lies on the camera ray's epipolar line in
+# the projector, ``across = a + b * along`` (ideal pixels; along = the decoded coordinate's axis),
+# and `sliscan.lens.solve_on_lines` finds where on it the observed coordinate is matched.
+
+
+def _epipolar_lines(calibration: Calibration, orientation: str, xc: NDArray[np.float64],
+                    yc: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(..., 2)`` coefficients ``(a, b)`` of the ideal projector epipolar line of observed camera
+    pixels ``xc, yc``: ``xp = a + b yp`` (rows) or ``yp = a + b xp`` (columns), ideal pixels.
+
+    The line is ``F (xc, yc, 1)`` with the fundamental matrix ``F = [e]_x Mp[:, :3] Mc[:, :3]^-1``
+    (``e`` the epipole, the camera centre seen by the projector) on the undistorted camera pixel.
+    Infinite or NaN where the line runs along the decoded axis (no intersection: ill-posed).
+    """
+    xc, yc = _undistort(calibration.camera, xc, yc)
+    mc, mp = calibration.camera.matrix, calibration.projector.matrix
+    centre = -np.linalg.solve(mc[:, :3], mc[:, 3])
+    e = mp @ np.append(centre, 1.0)
+    cross = np.array([[0.0, -e[2], e[1]], [e[2], 0.0, -e[0]], [-e[1], e[0], 0.0]])
+    f = cross @ mp[:, :3] @ np.linalg.inv(mc[:, :3])
+    line = [f[i, 0] * xc + f[i, 1] * yc + f[i, 2] for i in range(3)]
+    k = 1 if orientation == "rows" else 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.stack([-line[2] / line[1 - k], -line[k] / line[1 - k]], axis=-1)
+
+
+def _ideal_projector(calibration: Calibration, orientation: str, proj: NDArray[np.float64],
+                     lines: NDArray[np.float64], other: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """Ideal (pinhole) projector coordinate ``(N,)`` of decoded ones ``(N,)`` along `orientation`.
+
+    `lines` ``(N, 2)`` from `_epipolar_lines`; `other` ``(N,)``, optional: the other decoded
+    projector coordinate (``xp`` for rows), NaN where unknown.  Where both are known the point is
+    undistorted exactly, elsewhere solved on the epipolar line; NaN where `proj` is NaN or unsolved.
+    """
+    projector = calibration.projector
+    k = 1 if orientation == "rows" else 0
+    both = np.flatnonzero(np.isfinite(proj) & np.isfinite(other)) if other is not None else np.empty(0, np.intp)
+    one = proj.copy()
+    one[both] = np.nan
+    ideal = lens.solve_on_lines(one, k, lines, projector.intrinsics, projector.distortion)
+    if both.size:
+        observed = np.stack([other[both], proj[both]][::1 if k else -1], axis=-1)
+        ideal[both] = lens.undistort(observed, projector.intrinsics, projector.distortion)[:, k]
+    return ideal
 
 
 Vec = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
@@ -135,7 +177,9 @@ class Triangulator:
     undistorted once, here.  The coefficients are float64 (``(H, W, 8)``, 64 bytes per
     pixel: float32 ones lose up to 0.02 mm where the projector coordinate is ill-conditioned,
     as for columns on a vertical baseline); the points agree with `_solve`'s to float32
-    rounding.
+    rounding.  With projector distortion each pixel's epipolar line in the projector is found
+    once too (`_ProjectorLens`, 16 more bytes a pixel), and every call first undistorts the
+    decoded coordinates (`_ideal_projector`).
 
     Parameters
     ----------
@@ -177,9 +221,13 @@ class Triangulator:
             # about the projector's middle line, so neither term dwarfs the sum
             coef = np.concatenate([a + self._centre * b, b, den_a + self._centre * den_b, den_b], axis=1) * scale
             self._coef[top:top + chunk_rows] = coef.reshape(-1, w, 8)
+        self._lens = _ProjectorLens(calibration, orientation, chunk_rows) if has_distortion(
+            calibration.projector.distortion) else None
 
-    def __call__(self, proj_map: ArrayLike, valid: ArrayLike | None = None) -> NDArray[np.float32]:
-        """World points ``(H, W, 3)`` float32 of a projector-coordinate map; as `triangulate`."""
+    def __call__(self, proj_map: ArrayLike, valid: ArrayLike | None = None, *,
+                 other: ArrayLike | None = None) -> NDArray[np.float32]:
+        """World points ``(H, W, 3)`` float32 of a projector-coordinate map (and, optionally, of
+        the `other` projector coordinate, for an exact projector undistortion); as `triangulate`."""
         proj_map = _check_proj_map("proj_map", proj_map, self.shape)
         mask = np.isfinite(proj_map)
         if valid is not None:
@@ -190,13 +238,39 @@ class Triangulator:
             mask &= valid
         xyz_w = np.empty((*self.shape, 3), dtype=np.float32)
         values = np.ascontiguousarray(proj_map if proj_map.dtype.kind == "f" else proj_map.astype(np.float64))
+        if self._lens is not None:
+            values = self._lens.ideal_map(values, mask, None if other is None else _check_proj_map(
+                "other", other, self.shape))
+            mask &= np.isfinite(values)
         over_rows(lambda rows: _evaluate_rows(self._coef, self._centre, values, mask, self._quad, rows, xyz_w),
                   self.shape[0], self.workers)
         return xyz_w
 
 
+class _ProjectorLens:
+    """`Triangulator`'s undistortion of decoded projector coordinates: the epipolar line of every
+    camera pixel (`_epipolar_lines`, ``(H, W, 2)`` float64, 16 bytes a pixel), computed once."""
+
+    def __init__(self, calibration: Calibration, orientation: str, chunk_rows: int) -> None:
+        self.calibration, self.orientation = calibration, orientation
+        h, w = calibration.camera.shape
+        self.lines = np.empty((h, w, 2), dtype=np.float64)
+        for top in range(0, h, chunk_rows):
+            yc, xc = np.mgrid[top:min(top + chunk_rows, h), 0:w].astype(np.float64)
+            self.lines[top:top + chunk_rows] = _epipolar_lines(calibration, orientation, xc, yc)
+
+    def ideal_map(self, proj_map: NDArray[np.floating], mask: NDArray[np.bool_],
+                  other: NDArray | None) -> NDArray[np.float64]:
+        """Ideal projector coordinates ``(H, W)`` of the decoded ones where `mask`; NaN elsewhere."""
+        proj = np.where(mask, proj_map, np.nan).astype(np.float64, copy=False).ravel()
+        ideal = _ideal_projector(self.calibration, self.orientation, proj, self.lines.reshape(-1, 2),
+                                 None if other is None else np.asarray(other, dtype=np.float64).ravel())
+        return ideal.reshape(mask.shape)
+
+
 def triangulate(proj_map: ArrayLike, calibration: Calibration, *, orientation: str = "rows",
-                valid: ArrayLike | None = None, chunk_rows: int = 64) -> NDArray[np.float32]:
+                valid: ArrayLike | None = None, chunk_rows: int = 64,
+                other: ArrayLike | None = None) -> NDArray[np.float32]:
     """World point seen by every camera pixel (thesis eqs. 4.13-4.22).
 
     Builds a `Triangulator` for the rig and applies it; keep one to triangulate many maps.
@@ -209,8 +283,12 @@ def triangulate(proj_map: ArrayLike, calibration: Calibration, *, orientation: s
         is the calibrated camera's shape.
     calibration : Calibration
         Camera and projector world (mm) -> pixel matrices.  If the camera has distortion
-        coefficients, the camera pixel grid is first undistorted with ``cv2.undistortPoints``
-        (``P = K``) into the ideal pinhole ``K [R | t]`` that `matrix` describes.
+        coefficients, the camera pixel grid is first undistorted (`sliscan.lens.undistort`)
+        into the ideal pinhole ``K [R | t]`` that `matrix` describes.  If the projector has
+        distortion, each decoded coordinate (an observed, distorted projector pixel) is
+        undistorted too: exactly where `other` gives the other coordinate, else by Newton's
+        method along the pixel's epipolar line in the projector (`sliscan.lens.solve_on_lines`,
+        to 1e-6 px; pixels where it does not converge are invalid).
     orientation : {"rows", "columns"}
         Which projector coordinate `proj_map` holds; selects the projector matrix's second
         (eq. 4.20) or first (eq. 4.11) row for the third equation.
@@ -218,6 +296,11 @@ def triangulate(proj_map: ArrayLike, calibration: Calibration, *, orientation: s
         Pixels to triangulate.  Default: where `proj_map` is finite.
     chunk_rows : int
         Camera rows prepared together; bounds the temporary memory (a few hundred bytes per pixel).
+    other : (H, W) float array, optional
+        The other projector coordinate (`xp` for ``rows``, `yp` for ``columns``), NaN where
+        undecoded, from a sequence coding both directions.  Used only to undistort the
+        projector exactly when it has lens distortion (with a pinhole projector the other
+        coordinate adds nothing to the three equations).
 
     Returns
     -------
@@ -229,8 +312,8 @@ def triangulate(proj_map: ArrayLike, calibration: Calibration, *, orientation: s
     Raises
     ------
     InputError
-        If `proj_map` or `valid` is not (H, W) of the camera, `orientation` is unknown, or the
-        projector has lens distortion (not supported yet).
+        If `proj_map`, `valid` or `other` is not (H, W) of the camera, `orientation` is unknown,
+        or a device has distortion coefficients but no intrinsics.
 
     Examples
     --------
@@ -247,11 +330,11 @@ def triangulate(proj_map: ArrayLike, calibration: Calibration, *, orientation: s
     >>> float(np.abs(xyz_w[..., 2] - 500).max()) < 1e-3
     True
     """
-    return Triangulator(calibration, orientation, chunk_rows=chunk_rows)(proj_map, valid)
+    return Triangulator(calibration, orientation, chunk_rows=chunk_rows)(proj_map, valid, other=other)
 
 
 def triangulate_points(xc: ArrayLike, yc: ArrayLike, proj: ArrayLike, calibration: Calibration, *,
-                       orientation: str = "rows") -> NDArray[np.float64]:
+                       orientation: str = "rows", other: ArrayLike | None = None) -> NDArray[np.float64]:
     """World points of scattered camera pixels and their projector coordinates.
 
     The same solver as `triangulate`, for points that are not a full camera grid.
@@ -262,14 +345,20 @@ def triangulate_points(xc: ArrayLike, yc: ArrayLike, proj: ArrayLike, calibratio
         Camera pixel coordinates (x = column, y = row, as observed: undistorted here if the
         camera has distortion coefficients); finite.
     proj : (N,) float array
-        Projector row `yp` (``rows``) or column `xp` (``columns``) in pixels; NaN allowed.
+        Projector row `yp` (``rows``) or column `xp` (``columns``) in pixels, as observed
+        (undistorted here if the projector has distortion coefficients); NaN allowed.
     calibration : Calibration
     orientation : {"rows", "columns"}
+    other : (N,) float array, optional
+        The other projector coordinate of each point (`xp` for ``rows``), NaN where unknown:
+        with projector distortion, the points that have it are undistorted exactly (see
+        `triangulate`).
 
     Returns
     -------
     xyz_w : (N, 3) float64 array
-        Xw, Yw, Zw in mm; NaN where `proj` is NaN or the system is ill-conditioned.
+        Xw, Yw, Zw in mm; NaN where `proj` is NaN, the projector undistortion does not
+        converge, or the system is ill-conditioned.
 
     Examples
     --------
@@ -282,12 +371,16 @@ def triangulate_points(xc: ArrayLike, yc: ArrayLike, proj: ArrayLike, calibratio
     array([[ 10.,  20., 500.]])
     """
     _check_setup(calibration, orientation)
-    arrays = [np.asarray(v, dtype=np.float64) for v in (xc, yc, proj)]
+    arrays = [np.asarray(v, dtype=np.float64) for v in (xc, yc, proj, *(() if other is None else (other,)))]
     shapes = [a.shape for a in arrays]
+    names = "xc, yc and proj" if other is None else "xc, yc, proj and other"
     if any(a.ndim != 1 for a in arrays) or len(set(shapes)) != 1:
-        raise InputError(f"xc, yc and proj must be 1-D arrays of one length, got shapes {shapes}")
+        raise InputError(f"{names} must be 1-D arrays of one length, got shapes {shapes}")
     if not (np.all(np.isfinite(arrays[0])) and np.all(np.isfinite(arrays[1]))):
         raise InputError("xc and yc must be finite")
-    if np.any(np.isinf(arrays[2])):
-        raise InputError("proj has infinite values (use NaN for undecoded points)")
-    return _solve(*arrays, calibration, orientation)
+    if any(np.any(np.isinf(a)) for a in arrays[2:]):
+        raise InputError("proj and other must not have infinite values (use NaN for undecoded points)")
+    if has_distortion(calibration.projector.distortion):
+        lines = _epipolar_lines(calibration, orientation, arrays[0], arrays[1])
+        arrays[2] = _ideal_projector(calibration, orientation, arrays[2], lines, None if other is None else arrays[3])
+    return _solve(*arrays[:3], calibration, orientation)

@@ -53,7 +53,8 @@ import scipy.spatial
 from numpy.typing import ArrayLike, NDArray
 
 from sliscan._validate import InputError, check_finite_matrix, check_image
-from sliscan.targets import CircleTarget
+from sliscan.lens import distort, has_distortion, undistort
+from sliscan.targets import Board, CircleTarget
 from sliscan.types import Calibration, Device
 
 __all__ = [
@@ -76,7 +77,9 @@ __all__ = [
     "UniformAlbedo",
     "Union",
     "board_scene",
+    "calibration_poses",
     "camera_view",
+    "circle_grid_scene",
     "circle_target_scene",
     "plane_scene",
     "projector_rows",
@@ -104,7 +107,8 @@ _CHUNK_SAMPLES = 1 << 19
 
 @dataclass(frozen=True, eq=False)
 class Pinhole:
-    """A pinhole device (camera or projector): ``x ~ K [R | t] [Xw, Yw, Zw, 1]``.
+    """A pinhole device (camera or projector): ``x ~ K [R | t] [Xw, Yw, Zw, 1]``, optionally
+    behind a lens that distorts (`sliscan.lens`).
 
     Attributes
     ----------
@@ -116,12 +120,17 @@ class Pinhole:
         World -> device translation in mm.
     size : (W, H) tuple of int
         Image size in pixels.
+    distortion : (5,) float64 array or None
+        OpenCV lens distortion ``k1, k2, p1, p2, k3`` relative to `K`; None (or all zeros,
+        stored as None) for an ideal pinhole.  `project` then returns the distorted pixel and
+        `rays` undistorts the pixel first.
     """
 
     K: NDArray[np.float64]
     R: NDArray[np.float64]
     t: NDArray[np.float64]
     size: tuple[int, int]
+    distortion: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         K = check_finite_matrix("K", self.K, (3, 3))
@@ -136,14 +145,19 @@ class Pinhole:
         w, h = (int(v) for v in self.size)
         if w < 2 or h < 2:
             raise InputError(f"size must be at least 2x2 (W, H), got {self.size}")
-        for name, arr in (("K", K), ("R", R), ("t", t)):
-            arr.setflags(write=False)
+        dist = None
+        if self.distortion is not None:
+            dist = check_finite_matrix("distortion", np.ravel(self.distortion), (5,))
+            dist = dist if has_distortion(dist) else None
+        for name, arr in (("K", K), ("R", R), ("t", t), ("distortion", dist)):
+            if arr is not None:
+                arr.setflags(write=False)
             object.__setattr__(self, name, arr)
         object.__setattr__(self, "size", (w, h))
 
     @classmethod
     def from_matrix(cls, matrix: ArrayLike, size: tuple[int, int]) -> Pinhole:
-        """Split a 3x4 projection matrix (any scale or sign) into ``K``, ``R``, ``t`` (RQ).
+        """Split a 3x4 projection matrix (any scale or sign) into ``K``, ``R``, ``t`` (RQ), no lens.
 
         Raises
         ------
@@ -194,14 +208,17 @@ class Pinhole:
         Returns
         -------
         xy : (..., 2) float64 array
-            Pixel ``(x, y)``; only meaningful where `depth` > 0.
+            Pixel ``(x, y)`` (through the lens, with `distortion`); only meaningful where
+            `depth` > 0.
         depth : (...) float64 array
             Distance in front of the device along its axis, in mm.
         """
         cam = (np.asarray(xyz, dtype=np.float64) - self.centre) @ self.R.T
         depth = cam[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             xy = cam[..., :2] / depth[..., None] @ self.K[:2, :2].T + self.K[:2, 2]
+            if self.distortion is not None:
+                xy = distort(xy, self.K, self.distortion)
         return xy, depth
 
     def rays(self, x: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
@@ -212,13 +229,16 @@ class Pinhole:
         Parameters
         ----------
         x, y : (N,) arrays
-            Pixel coordinates (centres at integers).
+            Pixel coordinates (centres at integers), as observed: with `distortion` they are
+            undistorted first (`sliscan.lens.undistort`, ~1e-7 px).
 
         Returns
         -------
         dirs : (N, 3) float64 array
         """
         pix = np.stack([np.asarray(x, np.float64), np.asarray(y, np.float64), np.ones(np.shape(x))], axis=-1)
+        if self.distortion is not None:
+            pix[..., :2] = undistort(pix[..., :2], self.K, self.distortion)
         return pix @ np.linalg.inv(self.K).T @ self.R
 
 
@@ -229,8 +249,11 @@ class Rig:
     Parameters
     ----------
     calibration : Calibration
-        Camera and projector 3x4 world (mm) -> pixel matrices and image sizes.  Lens
-        distortion is not simulated, so devices must carry none (or all zeros).
+        Camera and projector 3x4 world (mm) -> pixel matrices and image sizes.  A device with
+        lens distortion must carry its intrinsics, with ``matrix = intrinsics @ [R | t]``: the
+        camera's rays leave through undistorted pixel positions, and the projector lights a
+        point from its distorted pixel (the ground truth's `proj` is that pixel, what a decoder
+        measures).
     working_distance_mm : float, optional
         Depth along the camera axis at which the rig is set up: the reference distance of the
         inverse-square falloff (there `Conditions.exposure` holds exactly).  Default: where the
@@ -244,8 +267,8 @@ class Rig:
     Raises
     ------
     InputError
-        If a device has lens distortion, a matrix is not a pinhole projection, or no working
-        distance is given while the optical axes are parallel.
+        If a device has lens distortion without matching intrinsics, a matrix is not a pinhole
+        projection, or no working distance is given while the optical axes are parallel.
     """
 
     calibration: Calibration
@@ -256,9 +279,14 @@ class Rig:
     def __post_init__(self) -> None:
         for name in ("camera", "projector"):
             device: Device = getattr(self.calibration, name)
-            if device.distortion is not None and np.any(device.distortion != 0):
-                raise InputError(f"{name}: lens distortion is not simulated; use an undistorted calibration")
-            object.__setattr__(self, name, Pinhole.from_matrix(device.matrix, device.size))
+            pinhole = Pinhole.from_matrix(device.matrix, device.size)
+            if has_distortion(device.distortion):
+                if device.intrinsics is None or not np.allclose(pinhole.K, device.intrinsics, rtol=1e-6,
+                                                                               atol=1e-9 * pinhole.K[0, 0]):
+                    raise InputError(f"{name}: lens distortion needs the intrinsics K it goes with, and matrix = "
+                                     "K [R | t]")
+                pinhole = replace(pinhole, distortion=device.distortion)
+            object.__setattr__(self, name, pinhole)
         wd = self.working_distance_mm
         if wd is None:
             wd = _axes_crossing_depth(self.camera, self.projector)
@@ -298,6 +326,8 @@ def virtual_rig(
     projector_above: bool = True,
     baseline_axis: str = "vertical",
     margin: float = 0.05,
+    camera_distortion: ArrayLike | None = None,
+    projector_distortion: ArrayLike | None = None,
 ) -> Rig:
     """The thesis's rig (section 4.2): a projector displaced vertically from the camera.
 
@@ -331,6 +361,10 @@ def virtual_rig(
         Direction of the baseline in the camera's image.
     margin : float
         Relative spare coverage for the default projector field of view.
+    camera_distortion, projector_distortion : (5,) arrays, optional
+        Lens distortion ``k1, k2, p1, p2, k3`` (OpenCV's model, `sliscan.lens`) of each device,
+        relative to its intrinsics; default none.  The default projector field of view then
+        covers the camera's view through both lenses.
 
     Returns
     -------
@@ -355,7 +389,9 @@ def virtual_rig(
     if not 0 <= margin < 1:
         raise InputError(f"margin must lie in [0, 1), got {margin}")
     (wc, hc), (wp, hp) = camera_size, projector_size
-    camera = Pinhole(K=_intrinsics(_focal(wc, camera_fov_deg), wc, hc), R=np.eye(3), t=np.zeros(3), size=(wc, hc))
+    camera = Pinhole(K=_intrinsics(_focal(wc, camera_fov_deg), wc, hc), R=np.eye(3), t=np.zeros(3), size=(wc, hc),
+                     distortion=None if camera_distortion is None else np.asarray(camera_distortion, np.float64))
+    lens_p = None if projector_distortion is None else np.asarray(projector_distortion, np.float64)
 
     if baseline_axis not in ("vertical", "horizontal"):
         raise InputError(f"baseline_axis must be 'vertical' or 'horizontal', got {baseline_axis!r}")
@@ -373,15 +409,18 @@ def virtual_rig(
         corners = np.array([[-0.5, -0.5], [wc - 0.5, -0.5], [-0.5, hc - 0.5], [wc - 0.5, hc - 0.5]])
         world = distance_mm * camera.rays(corners[:, 0], corners[:, 1])
         local = (world - centre) @ R.T
-        reach = np.abs(local[:, :2] / local[:, 2:]).max(axis=0)
+        normalised = local[:, :2] / local[:, 2:]
+        if lens_p is not None:  # where the projector's lens puts the corners, in focal lengths
+            normalised = distort(normalised, np.eye(3), lens_p)
+        reach = np.abs(normalised).max(axis=0)
         focal = min(wp / 2 / reach[0], hp / 2 / reach[1]) / (1 + margin)
     else:
         focal = _focal(wp, projector_fov_deg)
-    projector = Pinhole(K=_intrinsics(focal, wp, hp), R=R, t=-R @ centre, size=(wp, hp))
+    projector = Pinhole(K=_intrinsics(focal, wp, hp), R=R, t=-R @ centre, size=(wp, hp), distortion=lens_p)
 
     calibration = Calibration(
-        camera=Device(camera.matrix, camera.size, intrinsics=camera.K),
-        projector=Device(projector.matrix, projector.size, intrinsics=projector.K),
+        camera=Device(camera.matrix, camera.size, intrinsics=camera.K, distortion=camera.distortion),
+        projector=Device(projector.matrix, projector.size, intrinsics=projector.K, distortion=projector.distortion),
         extra={"source": "sliscan.simulate.virtual_rig", "distance_mm": distance_mm, "baseline_mm": baseline_mm,
                "baseline_axis": baseline_axis},
     )
@@ -945,12 +984,23 @@ def circle_target_scene(
     return Union(*faces), DiscAlbedo(target.centres, radius_mm), target
 
 
+def _board_pose(tilt_deg: tuple[float, float], distance_mm: float,
+                offset_mm: tuple[float, float]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Centre ``(3,)`` (mm) and rotation ``(3, 3)`` (columns: the board's x, y axes and normal)
+    of a board at ``(offset_x, offset_y, distance_mm)`` turned by `tilt_deg` (degrees about the
+    x axis, then about the y axis)."""
+    ax, ay = (math.radians(a) for a in tilt_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    return np.array([offset_mm[0], offset_mm[1], distance_mm], dtype=np.float64), ry @ rx
+
+
 def board_scene(
     *, tilt_deg: tuple[float, float] = (0.0, 0.0), distance_mm: float = 800.0,
-    inner_corners: tuple[int, int] = (9, 7), square_mm: float = 30.0
+    inner_corners: tuple[int, int] = (9, 7), square_mm: float = 30.0, offset_mm: tuple[float, float] = (0.0, 0.0)
 ) -> tuple[Plane, BoardAlbedo]:
-    """A flat chessboard centred on the camera axis at `distance_mm`, turned by `tilt_deg`
-    (degrees about the x axis, then about the y axis).
+    """A flat chessboard centred at ``(offset_mm, distance_mm)`` (by default on the camera axis
+    at `distance_mm`), turned by `tilt_deg` (degrees about the x axis, then about the y axis).
 
     Returns
     -------
@@ -958,16 +1008,67 @@ def board_scene(
     albedo : BoardAlbedo
         The board printed on it (its `corners` are the inner corners in mm).
     """
-    ax, ay = (math.radians(a) for a in tilt_deg)
-    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
-    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
-    rotation = ry @ rx
+    centre, rotation = _board_pose(tilt_deg, distance_mm, offset_mm)
     x_axis, y_axis = rotation[:, 0], rotation[:, 1]
     cols, rows = inner_corners
-    centre = np.array([0.0, 0.0, distance_mm])
     origin = centre - square_mm * ((cols - 1) / 2 * x_axis + (rows - 1) / 2 * y_axis)
     albedo = BoardAlbedo(origin, x_axis, y_axis, inner_corners, square_mm)
     return Plane(tuple(centre), tuple(rotation[:, 2])), albedo
+
+
+Pose = tuple[tuple[float, float], tuple[float, float]]
+
+
+def calibration_poses(count: int, *, tilt_deg: float = 35.0,
+                      offset_mm: tuple[float, float] = (70.0, 50.0)) -> list[Pose]:
+    """Board poses that pin down a lens: ``(tilt_deg, offset_mm)`` pairs for `board_scene` and
+    `circle_grid_scene`.
+
+    Pose ``k`` tilts the board by `tilt_deg` towards direction ``2 pi k / count`` (about the x
+    and y axes) and moves its centre by `offset_mm` around an ellipse (a radian further on), so
+    the poses together see the board strongly foreshortened in every direction (focal lengths,
+    principal point) and reach into the image corners (distortion).
+
+    Examples
+    --------
+    >>> [(tuple(round(a) for a in t), tuple(round(o) for o in off)) for t, off in calibration_poses(4)][:2]
+    [((35, 0), (38, 42)), ((0, 35), (-59, 27))]
+    """
+    if count < 1 or not 0 <= tilt_deg < 90:
+        raise InputError(f"calibration_poses needs count >= 1 and tilt_deg in [0, 90), got {count}, {tilt_deg}")
+    angles = 2 * np.pi * np.arange(count) / count
+    return [((tilt_deg * math.cos(a), tilt_deg * math.sin(a)),
+             (offset_mm[0] * math.cos(a + 1), offset_mm[1] * math.sin(a + 1))) for a in angles]
+
+
+def circle_grid_scene(
+    board: Board, *, tilt_deg: tuple[float, float] = (0.0, 0.0), distance_mm: float = 800.0,
+    offset_mm: tuple[float, float] = (0.0, 0.0)
+) -> tuple[Plane, DiscAlbedo, NDArray[np.float64]]:
+    """A flat circle grid (`sliscan.targets.Board`, symmetric or asymmetric, with its radius)
+    printed on an endless white plane, its layout centred at ``(offset_mm, distance_mm)`` and
+    turned by `tilt_deg` as in `board_scene`.
+
+    Returns
+    -------
+    scene : Plane
+    albedo : DiscAlbedo
+        The circles (albedo 0.1 on 0.9).
+    centres : (N, 3) float64 array
+        The circle centres in mm, in OpenCV's order (`Board.points`).
+
+    Raises
+    ------
+    InputError
+        If `board` is not a circle grid with a radius.
+    """
+    if not board.circles or board.radius is None:
+        raise InputError(f"a circle grid scene needs a circle grid with its radius, got a {board.describe()} "
+                         f"with radius {board.radius}")
+    centre, rotation = _board_pose(tilt_deg, distance_mm, offset_mm)
+    layout = board.points().astype(np.float64)
+    centres = centre + (layout - layout.mean(axis=0)) @ rotation.T
+    return Plane(tuple(centre), tuple(rotation[:, 2])), DiscAlbedo(centres, board.radius), centres
 
 
 # --------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sliscan._validate import InputError, atomic_write_text, check_finite_matrix, check_size
+from sliscan.lens import distort, has_distortion
 
 #: The pattern kinds this version knows: single-frame composite kinds, then multi-frame ones.
 COMPOSITE_KINDS = ("composite", "carrier_only", "modified_composite")
@@ -367,10 +368,23 @@ class Device:
         return (self.size[1], self.size[0])
 
     def project(self, xyz_w: NDArray[np.floating]) -> NDArray[np.float64]:
-        """Pixel coordinates ``(..., 2)`` (x, y) of world points ``(..., 3)`` in mm (pinhole only)."""
+        """Pixel coordinates ``(..., 2)`` (x, y) of world points ``(..., 3)`` in mm: the pinhole
+        `matrix`, then, if the device has distortion coefficients, the lens model
+        (`sliscan.lens.distort`): the pixel the device really sees the point at.
+
+        Raises
+        ------
+        InputError
+            If the device has distortion coefficients but no intrinsics.
+        """
         xyz_w = np.asarray(xyz_w, dtype=np.float64)
         h = xyz_w @ self.matrix[:, :3].T + self.matrix[:, 3]
-        return h[..., :2] / h[..., 2:3]
+        xy = h[..., :2] / h[..., 2:3]
+        if not has_distortion(self.distortion):
+            return xy
+        if self.intrinsics is None:
+            raise InputError("a device with lens distortion needs its intrinsics (K) to project")
+        return distort(xy, self.intrinsics, self.distortion)
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"matrix": self.matrix.tolist(), "size": list(self.size)}
