@@ -91,16 +91,22 @@ def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, method:
 
 
 def peak_memory_mib(camera: tuple[int, int], method: str, cache: Path) -> float:
-    """ru_maxrss (MiB) of a fresh process that loads the frame, builds a Scanner and scans once."""
-    code = ("import resource, sys; sys.path.insert(0, {bench!r}); from speed import frame; "
+    """Peak resident memory (MiB) of a fresh process that loads the frame, builds a Scanner and
+    scans once, with the compiled kernels already cached.
+
+    Read from ``VmHWM`` in ``/proc/self/status``, which a new program image starts afresh:
+    ``ru_maxrss`` survives ``exec``, so a child started from this process (holding the scans
+    of the timing runs) would report this process's size instead of its own."""
+    code = ("import sys; sys.path.insert(0, {bench!r}); from speed import frame; "
             "from sliscan.pipeline import Scanner; from pathlib import Path; "
             "image, rig, spec = frame({camera!r}, Path({cache!r})); "
             "Scanner(spec, rig.calibration, method={method!r}).scan(image); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
-    out = subprocess.run([sys.executable, "-c", code.format(bench=str(Path(__file__).parent), camera=camera,
-                                                            cache=str(cache), method=method)],
-                         check=True, capture_output=True, text=True).stdout
-    return int(out.split()[-1]) / 1024
+            "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM')))")
+    command = [sys.executable, "-c", code.format(bench=str(Path(__file__).parent), camera=camera, cache=str(cache),
+                                                 method=method)]
+    # twice: a first process may compile the numba kernels (LLVM's memory, not the scan's) and caches them
+    outs = [subprocess.run(command, check=True, capture_output=True, text=True).stdout for _ in range(2)]
+    return int(outs[-1].split()[-1]) / 1024
 
 
 def opencv_psp(image: np.ndarray, runs: int) -> dict | None:
