@@ -143,18 +143,35 @@ def _check_proj_map(name: str, value: ArrayLike, shape: tuple[int, int]) -> NDAr
 
 
 @numba.njit(cache=True, nogil=True)
-def _evaluate_rows(coef: NDArray[np.float64], centre: float, proj_map: NDArray, mask: NDArray[np.bool_],
+def _evaluate_rows(coef: NDArray[np.float64], affine: NDArray[np.float64], camera: NDArray[np.float64],
+                   norm_c2: NDArray[np.float64], centre: float, proj_map: NDArray, mask: NDArray[np.bool_],
                    quad: NDArray[np.float64], rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """``out[y, x] = (a + b q) / (c + d q)``, ``q = p - centre``, for the given rows (see
-    `Triangulator`), NaN where
-    `mask` is false or the system is ill-posed: ``|c + d p| <= MIN_PLANE_SINE |c3(p)|`` with
-    ``|c3(p)|**2 = quad[0] + quad[1] p + quad[2] p**2``."""
+    `Triangulator`), NaN where `mask` is false or the system is ill-posed: ``|c + d p| <=
+    MIN_PLANE_SINE |c3(p)|`` with ``|c3(p)|**2 = quad[0] + quad[1] p + quad[2] p**2``.
+
+    The pixel's eight coefficients come from `coef` ``(H, W, 8)`` when it has rows, else from
+    the row's `affine` ``(H, 2, 8)`` terms ``A + B x`` divided by ``|c1(x)| |c2|``, with ``c1(x) =
+    camera[0] - x camera[1]`` (camera rows 0 and 2, ``(2, 3)``) and ``|c2|`` = `norm_c2` ``(H,)``."""
+    k = np.empty(8)
+    tabled = coef.shape[0] > 0
     for y in rows:
         for x in range(proj_map.shape[1]):
+            if not mask[y, x]:
+                out[y, x, :] = np.nan
+                continue
+            if tabled:
+                k[:] = coef[y, x]
+            else:
+                c1 = 0.0
+                for j in range(3):
+                    c1 += (camera[0, j] - x * camera[1, j]) ** 2
+                scale = 1.0 / (np.sqrt(c1) * norm_c2[y])
+                for j in range(8):
+                    k[j] = (affine[y, 0, j] + affine[y, 1, j] * x) * scale
             p = np.float64(proj_map[y, x])
-            k = coef[y, x]
             den = k[6] + k[7] * (p - centre)
-            if not mask[y, x] or abs(den) <= MIN_PLANE_SINE * np.sqrt(quad[0] + quad[1] * p + quad[2] * p * p):
+            if abs(den) <= MIN_PLANE_SINE * np.sqrt(quad[0] + quad[1] * p + quad[2] * p * p):
                 out[y, x, :] = np.nan
                 continue
             for j in range(3):
@@ -173,11 +190,13 @@ class Triangulator:
     ``v, v3 = Mp[2, :3], Mp[2, 3]``: ``a = d1 (c2 x u) + d2 (u x c1) - u3 n``, ``b = -d1 (c2 x v)
     - d2 (v x c1) + v3 n``, ``c = u . n``, ``d = -v . n``, all divided by ``|c1| |c2|`` (so the
     ill-conditioning test of `_solve` (`MIN_PLANE_SINE`) reads ``|c + d p| > MIN_PLANE_SINE
-    |u - p v|``) and re-expanded about the projector's middle line.  The camera grid is
-    undistorted once, here.  The coefficients are float64 (``(H, W, 8)``, 64 bytes per
-    pixel: float32 ones lose up to 0.02 mm where the projector coordinate is ill-conditioned,
-    as for columns on a vertical baseline); the points agree with `_solve`'s to float32
-    rounding.  With projector distortion each pixel's epipolar line in the projector is found
+    |u - p v|``) and re-expanded about the projector's middle line.  Along a row of a pinhole
+    camera the unscaled coefficients are affine in ``x`` (``c1`` and ``d1`` are, the rest is
+    fixed), so a row needs only ``2 x 8`` numbers and the kernel forms each pixel's from them and
+    ``|c1(x)|``; with camera distortion the grid is undistorted once, here, and every pixel's
+    coefficients are kept (``(H, W, 8)``, 64 bytes a pixel).  All float64 (float32 coefficients
+    lose up to 0.02 mm where the projector coordinate is ill-conditioned, as for columns on a
+    vertical baseline); the points agree with `_solve`'s to float32 rounding.  With projector distortion each pixel's epipolar line in the projector is found
     once too (`_ProjectorLens`, 16 more bytes a pixel), and every call first undistorts the
     decoded coordinates (`_ideal_projector`).
 
@@ -205,24 +224,42 @@ class Triangulator:
         self._quad = np.array([u @ u, -2 * (u @ v), v @ v])
         self._centre = (calibration.projector.size[1 - k] - 1) / 2
         h, w = self.shape
-        self._coef = np.empty((h, w, 8), dtype=np.float64)
-        for top in range(0, h, chunk_rows):
-            yc, xc = np.mgrid[top:min(top + chunk_rows, h), 0:w].astype(np.float64)
-            xc, yc = _undistort(calibration.camera, xc.ravel(), yc.ravel())
-            c1 = np.outer(-xc, mc[2, :3]) + mc[0, :3]
-            c2 = np.outer(-yc, mc[2, :3]) + mc[1, :3]
-            d1 = (xc * mc[2, 3] - mc[0, 3])[:, None]
-            d2 = (yc * mc[2, 3] - mc[1, 3])[:, None]
-            n = np.cross(c1, c2)
-            a = d1 * np.cross(c2, u) + d2 * np.cross(u, c1) - u3 * n
-            b = -d1 * np.cross(c2, v) - d2 * np.cross(v, c1) + v3 * n
-            scale = 1.0 / (np.linalg.norm(c1, axis=1) * np.linalg.norm(c2, axis=1))[:, None]
-            den_a, den_b = n @ u[:, None], -(n @ v[:, None])
-            # about the projector's middle line, so neither term dwarfs the sum
-            coef = np.concatenate([a + self._centre * b, b, den_a + self._centre * den_b, den_b], axis=1) * scale
-            self._coef[top:top + chunk_rows] = coef.reshape(-1, w, 8)
+        self._camera = np.array([mc[0, :3], mc[2, :3]])
+        if has_distortion(calibration.camera.distortion):
+            # undistorted, a row of the camera grid is no line: every pixel's coefficients, once
+            self._coef = np.empty((h, w, 8), dtype=np.float64)
+            for top in range(0, h, chunk_rows):
+                yc, xc = np.mgrid[top:min(top + chunk_rows, h), 0:w].astype(np.float64)
+                xc, yc = _undistort(calibration.camera, xc.ravel(), yc.ravel())
+                coef, scale = self._coefficients(mc, u, u3, v, v3, xc, yc)
+                self._coef[top:top + chunk_rows] = (coef * scale[:, None]).reshape(-1, w, 8)
+            self._affine, self._norm_c2 = np.empty((0, 2, 8)), np.empty(0)
+        else:
+            # along a pinhole camera's row the unscaled coefficients are affine in x: 2 x 8 a row
+            self._coef = np.empty((0, 0, 8))
+            y = np.arange(h, dtype=np.float64)
+            at0, _ = self._coefficients(mc, u, u3, v, v3, np.zeros(h), y)
+            at1, _ = self._coefficients(mc, u, u3, v, v3, np.ones(h), y)
+            self._affine = np.stack([at0, at1 - at0], axis=1)
+            self._norm_c2 = np.linalg.norm(np.outer(-y, mc[2, :3]) + mc[1, :3], axis=1)
         self._lens = _ProjectorLens(calibration, orientation, chunk_rows) if has_distortion(
             calibration.projector.distortion) else None
+
+    def _coefficients(self, mc: NDArray[np.float64], u: NDArray[np.float64], u3: float, v: NDArray[np.float64],
+                      v3: float, xc: NDArray[np.float64], yc: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+        """Unscaled coefficients ``(N, 8)`` of ideal camera pixels ``xc, yc`` ``(N,)`` (expanded
+        about the projector's middle line) and their scale ``1 / (|c1| |c2|)`` ``(N,)``."""
+        c1 = np.outer(-xc, mc[2, :3]) + mc[0, :3]
+        c2 = np.outer(-yc, mc[2, :3]) + mc[1, :3]
+        d1 = (xc * mc[2, 3] - mc[0, 3])[:, None]
+        d2 = (yc * mc[2, 3] - mc[1, 3])[:, None]
+        n = np.cross(c1, c2)
+        a = d1 * np.cross(c2, u) + d2 * np.cross(u, c1) - u3 * n
+        b = -d1 * np.cross(c2, v) - d2 * np.cross(v, c1) + v3 * n
+        den_a, den_b = n @ u[:, None], -(n @ v[:, None])
+        # about the projector's middle line, so neither term dwarfs the sum
+        coef = np.concatenate([a + self._centre * b, b, den_a + self._centre * den_b, den_b], axis=1)
+        return coef, 1.0 / (np.linalg.norm(c1, axis=1) * np.linalg.norm(c2, axis=1))
 
     def __call__(self, proj_map: ArrayLike, valid: ArrayLike | None = None, *,
                  other: ArrayLike | None = None) -> NDArray[np.float32]:
@@ -242,8 +279,8 @@ class Triangulator:
             values = self._lens.ideal_map(values, mask, None if other is None else _check_proj_map(
                 "other", other, self.shape))
             mask &= np.isfinite(values)
-        over_rows(lambda rows: _evaluate_rows(self._coef, self._centre, values, mask, self._quad, rows, xyz_w),
-                  self.shape[0], self.workers)
+        over_rows(lambda rows: _evaluate_rows(self._coef, self._affine, self._camera, self._norm_c2, self._centre,
+                                              values, mask, self._quad, rows, xyz_w), self.shape[0], self.workers)
         return xyz_w
 
 
