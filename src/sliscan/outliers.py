@@ -62,6 +62,15 @@ def default_max_jump(spec: PatternSpec, direction: str) -> float:
     return 1.5 * spec.phase_lines / spec.stripes
 
 
+def _map_and_mask(proj_map: ArrayLike, valid: ArrayLike) -> tuple[NDArray, NDArray[np.bool_]]:
+    """The projector map and its valid mask as arrays, checked: ``(H, W)`` each, the mask bool."""
+    proj, mask = np.asarray(proj_map), np.asarray(valid)
+    if proj.ndim != 2 or mask.shape != proj.shape or mask.dtype != np.bool_:
+        raise InputError(f"need an (H, W) projector map and a bool mask of the same shape, "
+                         f"got {proj.shape} and {mask.dtype} {mask.shape}")
+    return proj, mask
+
+
 def remove_speckles(proj_map: ArrayLike, valid: ArrayLike, *, lines: int, max_jump: float,
                     min_region_px: int | None = None) -> NDArray[np.bool_]:
     """Valid mask without the small regions that jump away from their neighbours.
@@ -94,11 +103,7 @@ def remove_speckles(proj_map: ArrayLike, valid: ArrayLike, *, lines: int, max_ju
     >>> int((~keep).sum()), bool(keep[:20].all())
     (16, True)
     """
-    proj = np.asarray(proj_map)
-    mask = np.asarray(valid)
-    if proj.ndim != 2 or mask.shape != proj.shape or mask.dtype != np.bool_:
-        raise InputError(f"need an (H, W) projector map and a bool mask of the same shape, "
-                         f"got {proj.shape} and {mask.dtype} {mask.shape}")
+    proj, mask = _map_and_mask(proj_map, valid)
     if not (lines >= 1 and max_jump > 0):
         raise InputError(f"lines and max_jump must be positive, got {lines} and {max_jump}")
     size = default_min_region(proj.shape) if min_region_px is None else int(min_region_px)
@@ -180,11 +185,7 @@ def remove_narrow_runs(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float
     >>> int((~keep).sum()), bool(keep[1, :90].all())
     (20, True)
     """
-    proj = np.asarray(proj_map)
-    mask = np.asarray(valid)
-    if proj.ndim != 2 or mask.shape != proj.shape or mask.dtype != np.bool_:
-        raise InputError(f"need an (H, W) projector map and a bool mask of the same shape, "
-                         f"got {proj.shape} and {mask.dtype} {mask.shape}")
+    proj, mask = _map_and_mask(proj_map, valid)
     if axis not in (0, 1) or not (window >= 1 and max_jump > 0):
         raise InputError(f"need axis 0 or 1, a positive window and max_jump, got {axis}, {window}, {max_jump}")
     if axis == 0:
