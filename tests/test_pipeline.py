@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sliscan import InputError, PatternSpec, Scanner, ScanResult, patterns, simulate
+from sliscan.types import Calibration, Device
 from sliscan.evaluate import accuracy, oracle_points, stripe_depth, true_stripes
 from sliscan.patterns import stripe_center
 from sliscan.pipeline import baseline_direction, device_centre, measurable
@@ -53,15 +54,23 @@ def _measurable_reference(points, valid, calibration, direction, min_angle_deg):
     return ok & (np.degrees(np.arccos(np.clip(cos, -1, 1))) >= min_angle_deg)
 
 
-@pytest.mark.parametrize("direction", ["rows", "columns"])
-def test_measurable_kernel_equals_the_numpy_form(small_rig, direction):
-    """Random points around and far outside the working volume, some invalid or NaN."""
+@pytest.mark.parametrize("direction, lens", [("rows", False), ("columns", False), ("rows", True), ("columns", True)])
+def test_measurable_kernel_equals_the_numpy_form(small_rig, direction, lens):
+    """Random points around and far outside the working volume, some invalid or NaN; with a
+    projector lens the frustum is that of the distorted image (`Device.project`)."""
+    rig = (simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768),
+                                projector_distortion=(0.25, 0.05, 0.002, -0.002, 0.0)) if lens else small_rig)
     rng = np.random.default_rng(5)
     points = (rng.normal(0, 1, (90, 70, 3)) * [600, 600, 900] + [0, 0, 500]).astype(np.float32)
     points[rng.random(points.shape[:2]) < 0.05, 1] = np.nan
     valid = rng.random(points.shape[:2]) < 0.9
-    kept = measurable(points, valid, small_rig.calibration, direction, min_angle_deg=5.0)
-    np.testing.assert_array_equal(kept, _measurable_reference(points, valid, small_rig.calibration, direction, 5.0))
+    kept = measurable(points, valid, rig.calibration, direction, min_angle_deg=5.0)
+    np.testing.assert_array_equal(kept, _measurable_reference(points, valid, rig.calibration, direction, 5.0))
+    if lens:  # the lens moves the frustum's edges: ~100 of these points change sides
+        projector = rig.calibration.projector
+        pinhole = Calibration(camera=rig.calibration.camera,
+                              projector=Device(projector.matrix, projector.size, intrinsics=projector.intrinsics))
+        assert (measurable(points, valid, pinhole, direction, min_angle_deg=5.0) != kept).sum() > 20
     assert 0.1 < kept.mean() < 0.8  # both outcomes are exercised
 
 

@@ -18,6 +18,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
+from sliscan.lens import _model as lens_model
+from sliscan.lens import has_distortion
 from sliscan.decode import Decoded, decode
 from sliscan.demodulate import Carriers, Demodulated, demodulate
 from sliscan.outliers import default_max_jump, remove_narrow_runs, remove_speckles
@@ -41,10 +43,12 @@ def device_centre(matrix: NDArray[np.floating]) -> NDArray[np.float64]:
 
 @numba.njit(cache=True, nogil=True)
 def _measurable_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], depth: NDArray[np.float64],
-                     projector: NDArray[np.float64], across: int, low: float, high: float, centres: NDArray[np.float64],
-                     min_angle_deg: float, rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
+                     projector: NDArray[np.float64], lens: NDArray[np.float64], across: int, low: float, high: float,
+                     centres: NDArray[np.float64], min_angle_deg: float, rows: NDArray[np.intp],
+                     out: NDArray[np.bool_]) -> None:
     """`measurable` for the given rows: ``depth`` holds each device's depth row (2, 4),
-    ``centres`` the camera's and the projector's centre (2, 3)."""
+    ``centres`` the camera's and the projector's centre (2, 3), ``lens`` the projector's
+    intrinsics and distortion as ``fx, s, cx, fy, cy, k1, k2, p1, p2, k3`` (empty: none)."""
     for y in rows:
         for x in range(points.shape[1]):
             ok = valid[y, x]
@@ -55,9 +59,17 @@ def _measurable_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], dept
                 if ok:
                     ok = depth[device, 0] * p[0] + depth[device, 1] * p[1] + depth[device, 2] * p[2] + depth[device, 3] > 0
             if ok:
-                h = projector[across, 0] * p[0] + projector[across, 1] * p[1] + projector[across, 2] * p[2]
-                w = projector[2, 0] * p[0] + projector[2, 1] * p[1] + projector[2, 2] * p[2]
-                coordinate = (h + projector[across, 3]) / (w + projector[2, 3])
+                m = projector
+                hw = m[2, 0] * p[0] + m[2, 1] * p[1] + m[2, 2] * p[2] + m[2, 3]
+                xp = (m[0, 0] * p[0] + m[0, 1] * p[1] + m[0, 2] * p[2] + m[0, 3]) / hw
+                yp = (m[1, 0] * p[0] + m[1, 1] * p[1] + m[1, 2] * p[2] + m[1, 3]) / hw
+                if lens.size:  # the pixel the projector's lens sends that ray through
+                    fx, skew, cx, fy, cy = lens[0], lens[1], lens[2], lens[3], lens[4]
+                    v = (yp - cy) / fy
+                    u = (xp - cx - skew * v) / fx
+                    ud, vd, _, _, _ = lens_model(u, v, lens[5:])
+                    xp, yp = fx * ud + skew * vd + cx, fy * vd + cy
+                coordinate = xp if across == 0 else yp
                 ok = low < coordinate < high
             if ok:
                 ab = aa = bb = 0.0
@@ -72,8 +84,9 @@ def _measurable_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], dept
 def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibration: Calibration, direction: str, *,
                min_angle_deg: float) -> NDArray[np.bool_]:
     """Valid points that are measurements: finite, in front of the camera and the projector,
-    projecting inside the projector's image along the direction the stripes do not code, and
-    seen by camera and projector rays meeting at `min_angle_deg` or more.
+    projecting inside the projector's image (through its lens, if it has distortion) along
+    the direction the stripes do not code, and seen by camera and projector rays meeting at
+    `min_angle_deg` or more.
 
     A wrong stripe on a pixel the projector never reached (above its frustum, in shadow)
     otherwise triangulates to a point metres away, where the camera ray meets that stripe's
@@ -103,10 +116,13 @@ def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibratio
     across, lines = (0, w) if direction == "rows" else (1, h)
     margin = 0.02 * lines
     centres = np.array([device_centre(calibration.camera.matrix), device_centre(calibration.projector.matrix)])
+    projector = calibration.projector
+    lens = (np.concatenate([projector.intrinsics[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]], projector.distortion])
+            if has_distortion(projector.distortion) else np.empty(0))
     out = np.empty(valid.shape, dtype=bool)
     pts = np.ascontiguousarray(points, dtype=np.float32)
     over_rows(lambda rows: _measurable_rows(pts, np.ascontiguousarray(valid), np.array(depth),
-                                            np.ascontiguousarray(calibration.projector.matrix), across,
+                                            np.ascontiguousarray(projector.matrix), lens, across,
                                             -0.5 - margin, lines - 0.5 + margin, centres, float(min_angle_deg),
                                             rows, out), valid.shape[0])
     return out
