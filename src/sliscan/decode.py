@@ -173,8 +173,9 @@ def _lit(demod: Demodulated, spec: PatternSpec, dc: NDArray[np.float32], min_mod
     scale = _Scale.of(demod.amplitude, carriers, dc, np.isfinite(demod.amplitude[carriers[0]] / dc))
     lit = np.empty(dc.shape, dtype=bool)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
-    over_rows(lambda rows: _lit_rows(demod.amplitude, np.array(carriers, dtype=np.intp), dc, scale.off, scale.span,
-                                     np.float32(min_modulation), noise, np.float32(2 * min_snr), rows, lit), dc.shape[0])
+    which = np.array(carriers, dtype=np.intp)
+    over_rows(lambda rows: _lit_rows(demod.amplitude, which, dc, scale.off, scale.span, np.float32(min_modulation), noise,
+                                     np.float32(2 * min_snr), rows, lit), dc.shape[0])
     return lit
 
 
@@ -314,8 +315,8 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
     """
     s = np.ascontiguousarray(stripe, dtype=np.int64)
     out = np.empty(s.shape, dtype=bool)
-    over_rows(lambda rows: _agreeing_rows(s, np.ascontiguousarray(valid), radius, float(min_share), rows, out),
-              s.shape[0])
+    mask = np.ascontiguousarray(valid)
+    over_rows(lambda rows: _agreeing_rows(s, mask, radius, float(min_share), rows, out), s.shape[0])
     return out
 
 
@@ -366,8 +367,8 @@ def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels
     dy, dx = (reach, 0) if spec.orientation == "rows" else (0, reach)
     stripe = np.ascontiguousarray(stripe, dtype=np.int64)
     out = np.empty_like(stripe)
-    over_rows(lambda rows: _refine_rows(stripe, np.ascontiguousarray(valid), np.ascontiguousarray(levels),
-                                        stripe_codes(spec), dy, dx, rows, out), stripe.shape[0])
+    mask, bit_levels, codes = np.ascontiguousarray(valid), np.ascontiguousarray(levels), stripe_codes(spec)
+    over_rows(lambda rows: _refine_rows(stripe, mask, bit_levels, codes, dy, dx, rows, out), stripe.shape[0])
     return out
 
 
@@ -428,8 +429,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     confidence = np.empty(dc.shape, dtype=np.float32)
     valid = np.empty(dc.shape, dtype=bool)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
+    stripe_of_code = _stripe_of_code(spec)
     over_rows(lambda rows: _decode_rows(
-        demod.amplitude, reference, scale.off, scale.span, _stripe_of_code(spec), lit, demod.residual, noise,
+        demod.amplitude, reference, scale.off, scale.span, stripe_of_code, lit, demod.residual, noise,
         np.float32(0.5 * min_confidence), np.float32(min_snr), np.float32(max_residual), stripe_borders, rows,
         levels, stripe, confidence, valid), dc.shape[0])
     if spec.pilot is None and not spec.skip_zero_code:

@@ -121,10 +121,9 @@ def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibratio
             if has_distortion(projector.distortion) else np.empty(0))
     out = np.empty(valid.shape, dtype=bool)
     pts = np.ascontiguousarray(points, dtype=np.float32)
-    over_rows(lambda rows: _measurable_rows(pts, np.ascontiguousarray(valid), np.array(depth),
-                                            np.ascontiguousarray(projector.matrix), lens, across,
-                                            -0.5 - margin, lines - 0.5 + margin, centres, float(min_angle_deg),
-                                            rows, out), valid.shape[0])
+    mask, depths, matrix = np.ascontiguousarray(valid), np.array(depth), np.ascontiguousarray(projector.matrix)
+    over_rows(lambda rows: _measurable_rows(pts, mask, depths, matrix, lens, across, -0.5 - margin, lines - 0.5 + margin,
+                                            centres, float(min_angle_deg), rows, out), valid.shape[0])
     return out
 
 
