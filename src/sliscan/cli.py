@@ -296,6 +296,9 @@ def _describe(spec: PatternSpec) -> str:
     """One-phrase description of a pattern spec."""
     carriers = ", ".join(f"{f:.5g}" for f in spec.carriers)
     pilot = "" if spec.pilot is None else f" + pilot {spec.pilot:.5g}"
+    if spec.phase_carriers:
+        pilot += (f" + a {len(spec.phase_carriers)}-step phase channel (period {spec.fringe_period:.4g} lines) on "
+                  + ", ".join(f"{f:.5g}" for f in spec.phase_carriers))
     w, h = spec.projector_size
     return (f"{spec.kind} pattern for a {w}x{h} projector, {spec.bits} bits ({spec.stripes} stripes along "
             f"{spec.orientation}) on carriers {carriers}{pilot} cycles per {spec.orthogonal_lines} px")
@@ -349,6 +352,14 @@ _pattern_options = _options(
     click.option("--orientation", type=click.Choice(["rows", "columns"]), default="rows", show_default=True,
                  help="Projector coordinate the stripes code."),
     click.option("--pilot", type=PilotType(), help="Pilot carrier frequency, or 'none'."),
+    click.option("--phase", is_flag=True,
+                 help="Add a 3-step phase channel (sub-stripe depth from the same frame): the fringe's "
+                      "phase-shifted copies on the next three carriers above the bits' (160, 192, 224 per "
+                      "1024 px for the default bits)."),
+    click.option("--phase-carriers", type=FLOATS,
+                 help="The phase channel's carriers (at least 3), cycles per projector width; implies --phase."),
+    click.option("--phase-period", type=POSITIVE,
+                 help="Projector lines per fringe period of the phase channel [two stripes]."),
     click.option("--skip-zero-code/--keep-zero-code", default=None,
                  help="Never project the all-zero code (sliscan's best does; the thesis does not)."),
     click.option("--from-characterization", "characterization", type=INPUT_FILE,
@@ -375,7 +386,8 @@ def _largest_bp(spec: PatternSpec, reserved: float = 0.0) -> float:
 def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: int | None,
                   carriers: tuple[float, ...] | None, weights: tuple[float, ...] | None, a_p: float | None,
                   b_p: float | None, gamma: float | None, orientation: str, pilot: float | str | None,
-                  skip_zero_code: bool | None, characterization: Path | None = None,
+                  skip_zero_code: bool | None, phase: bool = False, phase_carriers: tuple[float, ...] | None = None,
+                  phase_period: float | None = None, characterization: Path | None = None,
                   modified_frequency: float | None = None, modified_amplitude: float | None = None) -> PatternSpec:
     """The PatternSpec the `sliscan pattern` options describe (see `pattern composite --help`)."""
     if characterization is not None and gamma is not None:
@@ -396,16 +408,18 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
     elif pilot is not None:
         changes["pilot"] = pilot
     for name, value in (("weights", weights), ("a_p", a_p), ("gamma", gamma), ("skip_zero_code", skip_zero_code),
-                        ("modified_frequency", modified_frequency)):
+                        ("modified_frequency", modified_frequency), ("phase_period", phase_period)):
         if value is not None:
             changes[name] = value
+    if phase or phase_carriers is not None:
+        changes["phase_carriers"] = phase_carriers or patterns.carriers_above(changes.get("carriers", base.carriers))
     spec = base.with_(**changes)
     if kind == "modified_composite":
         amplitude = modified_amplitude
         if amplitude is None:  # one more carrier's worth: B_p with the sine counted as a weight-1 carrier
             amplitude = _largest_bp(spec) * _weight_sum(spec) / (_weight_sum(spec) + 1)
         spec = spec.with_(modified_amplitude=amplitude, b_p=b_p if b_p is not None else _largest_bp(spec, amplitude))
-    elif b_p is not None or any(v is not None for v in (bits, carriers, weights, a_p, pilot)):
+    elif b_p is not None or spec.phase_carriers or any(v is not None for v in (bits, carriers, weights, a_p, pilot)):
         spec = spec.with_(b_p=b_p if b_p is not None else _largest_bp(spec))  # the swing changed: fit B_p again
     if characterization is None:
         return spec

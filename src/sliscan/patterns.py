@@ -125,8 +125,38 @@ def bit_planes(spec: PatternSpec) -> NDArray[np.uint8]:
     return code_bits(stripe_codes(spec)[stripe], spec.bits).T.copy()
 
 
+def fringe_phase(line: ArrayLike, spec: PatternSpec) -> NDArray[np.float64]:
+    """Phase of the phase channel's fringe at (fractional) projector lines along the phase
+    direction, radians, unwrapped: 0 at the top edge of line 0 (line -0.5), ``2 pi`` one
+    `PatternSpec.fringe_period` later, so every second stripe border (of the default period)
+    is a period border.
+
+    >>> fringe_phase([-0.5, 47.5, 95.5], PatternSpec(phase_carriers=(1, 2, 3))).round(4).tolist()
+    [0.0, 3.1416, 6.2832]
+    """
+    return 2 * np.pi * (np.asarray(line, dtype=np.float64) + 0.5) / spec.fringe_period
+
+
+def fringe_line(phase: ArrayLike, spec: PatternSpec) -> NDArray[np.float64]:
+    """Inverse of `fringe_phase`: projector line of an unwrapped fringe phase (radians)."""
+    return np.asarray(phase, dtype=np.float64) * spec.fringe_period / (2 * np.pi) - 0.5
+
+
+def phase_shifts(spec: PatternSpec) -> NDArray[np.float64]:
+    """Phase shift of each phase carrier's fringe, ``2 pi n / N`` radians, ``(N,)``."""
+    n = len(spec.phase_carriers)
+    return 2 * np.pi * np.arange(n) / max(n, 1)
+
+
+def phase_planes(spec: PatternSpec) -> NDArray[np.float64]:
+    """The fringes on the phase carriers along the phase direction: ``(N, L)`` in [0, 1],
+    ``(1 + cos(fringe_phase - 2 pi n / N)) / 2`` (N = 0 without a phase channel)."""
+    phase = fringe_phase(np.arange(spec.phase_lines), spec)
+    return 0.5 * (1 + np.cos(phase[None, :] - phase_shifts(spec)[:, None]))
+
+
 def carrier_waves(spec: PatternSpec) -> NDArray[np.float64]:
-    """``cos(2 pi f_n x / W)`` for every carrier (bits, then pilot) along the orthogonal direction.
+    """``cos(2 pi f_n x / W)`` for every carrier (bits, phase, pilot) along the orthogonal direction.
 
     Returns ``(len(spec.all_carriers), spec.orthogonal_lines)``.
     """
@@ -160,7 +190,7 @@ def linear_pattern(spec: PatternSpec) -> NDArray[np.float64]:
     if spec.kind == "carrier_only":
         on = np.ones((len(spec.all_carriers), spec.phase_lines))
     else:
-        on = np.vstack([bit_planes(spec), np.ones((len(spec.all_carriers) - spec.bits, spec.phase_lines))])
+        on = np.vstack([bit_planes(spec), phase_planes(spec), np.ones((int(spec.pilot is not None), spec.phase_lines))])
     # (L, O): sum over carriers of on[n, line] * w_n * wave[n, x]
     image = spec.a_p + spec.b_p * (on.T @ (weights * waves))
     if spec.kind == "modified_composite":
@@ -279,6 +309,34 @@ def default_spec(projector_size: tuple[int, int] = (1024, 768), **changes) -> Pa
                 weights=(1.0,) * bits, skip_zero_code=True, a_p=0.5, b_p=0.5 / bits)
     base.update(changes)
     return PatternSpec(**base)
+
+
+def carriers_above(carriers: tuple[float, ...], count: int = 3) -> tuple[float, ...]:
+    """`count` carriers continuing `carriers`' spacing (taken as their lowest) above the highest.
+
+    >>> carriers_above((128.0, 96.0, 64.0, 32.0))
+    (160.0, 192.0, 224.0)
+    """
+    spacing, top = min(carriers), max(carriers)
+    return tuple(top + spacing * k for k in range(1, count + 1))
+
+
+def phase_spec(projector_size: tuple[int, int] = (1024, 768), **changes) -> PatternSpec:
+    """`default_spec` plus a 3-step phase channel (issue 8): sub-stripe depth from one frame.
+
+    The bits keep their carriers (for 4 bits 32-128 per 1024 px, the most significant on the
+    highest); the fringe's three phase-shifted copies go on the next three multiples of their
+    spacing (160, 192, 224), so the window stays one spacing period.  Every carrier gets an
+    equal share of the drive (``0.5 / 7`` each for 4 bits).  Measured alternatives (benchmarks/accuracy.py): the phase on the lowest
+    carriers and the bits above lost the Gray code (the bits' decisions need the stronger low
+    carriers), and the projector gamma's products of the low phase carriers (32 + 64 = 96)
+    land on each other.
+    """
+    orientation = changes.get("orientation", "rows")
+    base = default_spec(projector_size, orientation=orientation, bits=int(changes.pop("bits", 4)))
+    phase = carriers_above(base.carriers)
+    spec = base.with_(phase_carriers=phase, b_p=0.5 / (base.bits + len(phase)))
+    return spec.with_(**changes) if changes else spec
 
 
 def save_pattern(path: str | os.PathLike, spec: PatternSpec) -> tuple[Path, Path]:

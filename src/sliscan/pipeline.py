@@ -16,6 +16,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sliscan import fringe
 from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
 from sliscan.lens import _model as lens_model
@@ -276,7 +277,7 @@ class Scanner:
         t0 = time.perf_counter()
         demod, carriers = self.demodulate(image)
         t1 = time.perf_counter()
-        decoded = decode(demod, self.spec, **self.decode_options)
+        decoded = fringe.refine(decode(demod, self.spec, **self.decode_options), demod, carriers, self.spec)
         t2 = time.perf_counter()
         points = self.triangulator(self.spec.orientation)(decoded.proj_map, decoded.valid)
         valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)

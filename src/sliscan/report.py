@@ -217,8 +217,9 @@ def passbands(frequency: NDArray[np.float64], carriers: Any, method: str, width:
 
 
 def carrier_labels(spec: PatternSpec) -> list[str]:
-    """Names of ``spec.all_carriers``: bit 0 (most significant) ... and the pilot."""
-    return [f"bit {n}" for n in range(spec.bits)] + (["pilot"] if spec.pilot is not None else [])
+    """Names of ``spec.all_carriers``: bit 0 (most significant) ..., phase 0 ..., and the pilot."""
+    return ([f"bit {n}" for n in range(spec.bits)] + [f"phase {n}" for n in range(len(spec.phase_carriers))]
+            + (["pilot"] if spec.pilot is not None else []))
 
 
 def _spectrum_section(report: ScanReport) -> str:

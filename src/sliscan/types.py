@@ -31,11 +31,12 @@ ORIENTATIONS = ("rows", "columns")
 SEQUENCE_ORIENTATIONS = ORIENTATIONS + ("both",)
 #: Fields only the composite kinds use, and fields only the multi-frame kinds use: each kind's
 #: JSON leaves out the other group (they keep their defaults).
-_COMPOSITE_FIELDS = ("bits", "carriers", "weights", "pilot", "pilot_weight", "skip_zero_code", "modified_frequency",
-                     "modified_amplitude", "image")
+_COMPOSITE_FIELDS = ("bits", "carriers", "weights", "phase_carriers", "phase_period", "phase_weight", "pilot",
+                     "pilot_weight", "skip_zero_code", "modified_frequency", "modified_amplitude", "image")
 _MULTI_FRAME_FIELDS = ("steps", "frequencies", "code_width", "frames")
 #: Scalar fields that must be finite numbers in every kind.
-_NUMBER_FIELDS = ("a_p", "b_p", "gamma", "pilot_weight", "modified_frequency", "modified_amplitude")
+_NUMBER_FIELDS = ("a_p", "b_p", "gamma", "phase_period", "phase_weight", "pilot_weight", "modified_frequency",
+                  "modified_amplitude")
 
 
 def _is_finite_number(value: object) -> bool:
@@ -66,6 +67,19 @@ class PatternSpec:
     weights : tuple of float
         Amplitude weight of each carrier (roll-off pre-compensation, fig. 3.13), same length
         as `carriers`; the pilot carrier, if any, has weight `pilot_weight`.
+    phase_carriers : tuple of float
+        The phase channel (issue 8; the PMP composite pattern of the thesis's lab): ``N >= 3``
+        more carriers (cycles per projector width), carrier ``n`` modulated along the phase
+        direction by the fringe ``(1 + cos(2 pi (line + 0.5) / phase_period - 2 pi n / N)) / 2``,
+        so the envelopes of the N carriers are N phase-shifted samples of one fringe: its phase
+        places a pixel inside a fringe period, and the Gray code stripe says which period.
+        Empty (default): no phase channel, the pattern codes stripes only.
+    phase_period : float
+        Projector lines per fringe period along the phase direction; 0 (default) means two
+        stripes (`fringe_period`), the shortest period whose unwrapping tolerates a Gray code
+        decision off by a quarter period.  Must exceed one stripe.
+    phase_weight : float
+        Amplitude weight of each phase carrier, in the units of `weights`.
     a_p, b_p : float
         Projection constants of eq. 3.1: ``I = a_p + b_p * sum_n w_n I_n cos(2 pi f_n x)``,
         in [0, 1] units of full projector drive.
@@ -124,6 +138,9 @@ class PatternSpec:
     gamma: float = 1.0
     response: tuple[float, ...] | None = None
     orientation: str = "rows"
+    phase_carriers: tuple[float, ...] = ()
+    phase_period: float = 0.0
+    phase_weight: float = 1.0
     pilot: float | None = None
     pilot_weight: float = 1.0
     skip_zero_code: bool = False
@@ -142,6 +159,7 @@ class PatternSpec:
             raise InputError(f"invalid pattern spec: {exc}") from None
         object.__setattr__(self, "carriers", tuple(float(v) for v in self.carriers))
         object.__setattr__(self, "weights", tuple(float(v) for v in self.weights))
+        object.__setattr__(self, "phase_carriers", tuple(float(v) for v in self.phase_carriers))
         object.__setattr__(self, "frequencies", tuple(float(v) for v in self.frequencies))
         if isinstance(self.frames, str):
             raise InputError("invalid pattern spec: frames must be a list of file names")
@@ -192,6 +210,11 @@ class PatternSpec:
             out.append(f"need one carrier per bit ({self.bits}), got {len(self.carriers)}")
         if len(self.weights) != len(self.carriers):
             out.append(f"need one weight per carrier ({len(self.carriers)}), got {len(self.weights)}")
+        if self.phase_carriers and len(self.phase_carriers) < 3:
+            out.append(f"a phase channel needs at least 3 phase carriers (0: none), got {len(self.phase_carriers)}")
+        stripe_lines = (h if self.orientation == "rows" else w) / max(self.stripes, 1)
+        if self.phase_period != 0 and not self.phase_period > stripe_lines:
+            out.append(f"phase_period must exceed one stripe ({stripe_lines:g} lines), got {self.phase_period:g}")
         allc = self.all_carriers
         nyquist = (w if self.orientation == "rows" else h) / 2
         if any(not (0 < f < nyquist) for f in allc):
@@ -275,13 +298,30 @@ class PatternSpec:
 
     @property
     def all_carriers(self) -> tuple[float, ...]:
-        """Bit carriers followed by the pilot carrier, if any (cycles per projector width)."""
-        return self.carriers + ((float(self.pilot),) if self.pilot is not None else ())
+        """Bit carriers, then the phase carriers, then the pilot carrier, if any (cycles per
+        projector width)."""
+        return self.carriers + self.phase_carriers + ((float(self.pilot),) if self.pilot is not None else ())
 
     @property
     def all_weights(self) -> tuple[float, ...]:
         """Weights parallel to `all_carriers`."""
-        return self.weights + ((float(self.pilot_weight),) if self.pilot is not None else ())
+        return (self.weights + (float(self.phase_weight),) * len(self.phase_carriers)
+                + ((float(self.pilot_weight),) if self.pilot is not None else ()))
+
+    @property
+    def pilot_index(self) -> int | None:
+        """Index of the pilot carrier in `all_carriers`, None without one."""
+        return None if self.pilot is None else self.bits + len(self.phase_carriers)
+
+    @property
+    def fringe_period(self) -> float:
+        """Projector lines per period of the phase channel's fringe (`phase_period`, or two
+        stripes when that is 0).
+
+        >>> PatternSpec(phase_carriers=(160, 192, 224)).fringe_period   # 768 rows, 16 stripes
+        96.0
+        """
+        return self.phase_period or 2.0 * self.phase_lines / self.stripes
 
     @property
     def stripes(self) -> int:
