@@ -53,8 +53,13 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
     pixel), so the window grows with the number of bits.
     """
     width = projector[0]
-    specs = {"thesis 4-bit": patterns.thesis_spec(projector), "sliscan 4-bit": patterns.default_spec(projector)}
+    specs = {"thesis 4-bit": patterns.thesis_spec(projector), "sliscan 4-bit": patterns.default_spec(projector),
+             "sliscan 4-bit + phase": patterns.phase_spec(projector)}
     if not quick:
+        # issue 8's variant that lost: the phase channel on the lowest carriers, the bits above
+        base = patterns.phase_spec(projector)
+        specs["4-bit + phase on low carriers"] = base.with_(carriers=tuple(sorted(base.phase_carriers + (base.carriers[0],), reverse=True)),
+                                                            phase_carriers=tuple(sorted(base.carriers)[:3]))
         for bits in (6, 8):
             carriers = tuple(k * width / 8 / bits for k in range(1, bits + 1))
             specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
@@ -117,7 +122,7 @@ def main() -> None:
                                    seconds=seconds, **acc.as_dict())
                         rows.append(row)
                         print(f"{name:22s} {method:9s} {scene_name:7s} {albedo:8s} {seed:4d} "
-                              f"{100 * acc.stripe_accuracy:8.2f} {100 * acc.completeness:9.2f} "
+                              f"{100 * acc.stripe_accuracy:8.2f} {100 * acc.far_stripe:6.3f} {100 * acc.completeness:9.2f} "
                               f"{100 * acc.outliers:8.2f} {100 * acc.gross_outliers:6.3f} {acc.rms_mm:8.2f} {acc.median_mm:7.2f} "
                               f"{acc.oracle_median_mm:10.2f} {seconds:5.1f}", flush=True)
     Path(args.json).write_text(json.dumps({"camera": camera, "projector": projector, "rows": rows}, indent=1))
@@ -165,14 +170,21 @@ def compare(rig: simulate.Rig, projector: tuple[int, int], args: argparse.Namesp
 
 
 def compare_markdown(rows: list[dict]) -> str:
-    """The `--compare` rows as the README's Markdown table."""
+    """The `--compare` rows as the README's Markdown table.
+
+    *PMP kept*: the median error of multi-frequency PMP on the same scene, conditions and seed
+    over this method's: the fraction of PMP's accuracy the method keeps.
+    """
+    pmp = {(r["scene"], r["conditions"], r["seed"]): r["median_mm"] for r in rows if r["method"].startswith("PMP")}
     lines = ["| method | frames | scene | conditions | completeness | outliers | RMS (mm) | median (mm) "
-             "| p95 (mm) | sphere radius (mm) (fit rejected) |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| p95 (mm) | PMP kept | sphere radius (mm) (fit rejected) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         radius = "" if r["radius_mm"] != r["radius_mm"] else f"{r['radius_mm']:.2f} ({100 * r['fit_rejected']:.1f} %)"
+        reference = pmp.get((r["scene"], r["conditions"], r["seed"]))
+        kept = "" if reference is None else f"{100 * reference / max(r['median_mm'], 1e-9):.1f} %"
         lines.append(f"| {r['method']} | {r['frames']} | {r['scene']} | {r['conditions']} "
                      f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {r['rms_mm']:.2f} "
-                     f"| {r['median_mm']:.2f} | {r['p95_mm']:.2f} | {radius} |")
+                     f"| {r['median_mm']:.2f} | {r['p95_mm']:.2f} | {kept} | {radius} |")
     return "\n".join(lines) + "\n"
 
 
@@ -193,12 +205,13 @@ def render_cached(folder: str | None, key: str, render) -> simulate.Capture:
 
 def markdown_table(rows: list[dict]) -> str:
     """The rows as the README's Markdown table."""
-    lines = ["| pattern | decoder | scene | albedo | stripe accuracy | completeness | outliers | gross outliers "
-             "| RMS (mm) | median (mm) | oracle median (mm) | scan (s) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| pattern | decoder | scene | albedo | stripe accuracy | off > 1 stripe | completeness | outliers "
+             "| gross outliers | RMS (mm) | median (mm) | oracle median (mm) | scan (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         decoder = "sliscan window" if r["decoder"] == "window" else "thesis band-pass"
         lines.append(f"| {r['pattern']} | {decoder} | {r['scene']} | {r['albedo']} | {100 * r['stripe_accuracy']:.1f} % "
-                     f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {100 * r['gross_outliers']:.3f} % "
+                     f"| {100 * r['far_stripe']:.2f} % | {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {100 * r['gross_outliers']:.3f} % "
                      f"| {r['rms_mm']:.1f} "
                      f"| {r['median_mm']:.2f} | {r['oracle_median_mm']:.2f} | {r['seconds']:.1f} |")
     return "\n".join(lines) + "\n"

@@ -22,6 +22,7 @@ def method_specs(projector: tuple[int, int]) -> dict[str, PatternSpec]:
     return {
         "CP thesis 4-bit": patterns.thesis_spec(projector),
         "CP sliscan 4-bit": patterns.default_spec(projector),
+        "CP sliscan 4-bit + phase": patterns.phase_spec(projector),
         "Gray code 10-bit": PatternSpec(kind="graycode", projector_size=projector, orientation="rows"),
         "Gray code 7-bit + 4-step phase": PatternSpec(kind="graycode", projector_size=projector,
                                                       orientation="rows", code_width=8, steps=4),

@@ -189,6 +189,28 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     ok("demo", "--camera", CAMERA_ARG, "--out", "demo", "--pattern", "best", cwd=tmp_path)  # again: replaces its files
 
 
+def test_demo_scans_the_phase_pattern_where_the_camera_resolves_it(tmp_path: Path) -> None:
+    coarse = ok("demo", "--camera", CAMERA_ARG, "--out", "demo", cwd=tmp_path)
+    assert "phase: left out" in coarse.stderr and not (tmp_path / "demo" / "phase").exists()
+    result = ok("demo", "--camera", CAMERA_ARG, "--projector", "512x384", "--out", "demo2", cwd=tmp_path)
+    header = next(line for line in result.stdout.splitlines() if "thesis" in line)
+    assert "phase" in header
+    median = next(line for line in result.stdout.splitlines() if line.lstrip("│ ").startswith("median error"))
+    thesis, best, phase = (float(v) for v in median.split("│")[2:5])
+    assert phase < 0.3 * best  # sub-stripe depth: measured 4 mm against 34 (the staircase's 27)
+    assert (tmp_path / "demo2" / "phase" / "pattern.json").is_file()
+
+
+def test_pattern_with_a_phase_channel(tmp_path: Path) -> None:
+    result = ok("pattern", "composite", "--projector", "1024x768", "--phase", "-o", "cp.png", cwd=tmp_path)
+    assert "3-step phase channel" in result.stdout
+    spec = PatternSpec.load(tmp_path / "cp.json")
+    assert spec.phase_carriers == (160.0, 192.0, 224.0) and spec.b_p == pytest.approx(0.5 / 7)
+    bad = sliscan("pattern", "composite", "--projector", "1024x768", "--phase-carriers", "150,170", "-o", "x.png",
+              cwd=tmp_path)
+    assert bad.returncode == 2 and "at least 3 phase carriers" in bad.stderr and not (tmp_path / "x.png").exists()
+
+
 def test_existing_outputs_are_replaced_only_with_overwrite(plane: tuple[Path, str], tmp_path: Path) -> None:
     source, _ = plane
     for name in ("cp.json", "rig.json", "capture.png"):

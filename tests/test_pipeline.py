@@ -97,11 +97,11 @@ def test_accuracy_of_a_perfect_decoder_is_the_oracle(small_rig):
     assert 5 < acc.oracle_median_mm < 60
 
 
-@pytest.mark.parametrize("shift, outliers, gross", [(2, 1.0, 0.0), (5, 1.0, 1.0)])
+@pytest.mark.parametrize("shift, outliers, gross", [(1, None, 0.0), (2, 1.0, 0.0), (5, 1.0, 1.0)])
 def test_accuracy_counts_a_shifted_stripe_as_wrong(small_rig, shift, outliers, gross):
-    """Every point `shift` stripes off: an outlier (> 1 stripe's depth) either way; a gross
-    outlier (projector coordinate > 3 stripes off) at 5 stripes, not at 2 (2 +- 0.5 stripes
-    with the staircase)."""
+    """Every point `shift` stripes off: wrong, and off by more than one stripe from 2 on; an
+    outlier (> 1 stripe's depth) from 2 on (at 1, where the staircase adds to it); a gross outlier (projector coordinate > 3 stripes
+    off) at 5 stripes, not at 2 (2 +- 0.5 stripes with the staircase)."""
     spec = patterns.thesis_spec((1024, 768))
     capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(spec),
                               simulate.Conditions(supersample=1, seed=0))
@@ -114,7 +114,9 @@ def test_accuracy_counts_a_shifted_stripe_as_wrong(small_rig, shift, outliers, g
                          stripe=stripe, confidence=perfect.confidence)
     acc = accuracy(shifted, capture.truth, spec, small_rig.calibration)
     assert acc.stripe_accuracy == 0.0 and acc.wrong_stripe == 1.0
-    assert acc.outliers == pytest.approx(outliers, abs=0.01) and acc.gross_outliers == pytest.approx(gross, abs=0.01)
+    assert acc.far_stripe == pytest.approx(0.0 if shift == 1 else acc.valid_pixels / acc.lit_pixels)
+    assert outliers is None or acc.outliers == pytest.approx(outliers, abs=0.01)
+    assert acc.gross_outliers == pytest.approx(gross, abs=0.01)
 
 
 def test_points_in_shadow_are_judged_by_their_own_stripe_depth(small_rig):

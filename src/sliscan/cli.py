@@ -1469,9 +1469,33 @@ def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, 
 # --------------------------------------------------------------------------------------------
 
 
-def _demo_specs(which: str, projector: tuple[int, int]) -> dict[str, PatternSpec]:
-    specs = {"thesis": patterns.thesis_spec(projector), "best": patterns.default_spec(projector)}
-    return specs if which == "both" else {which: specs[which]}
+#: Fewest camera pixels per period of a pattern's finest carrier that the demo scans.
+_DEMO_MIN_PERIOD_PX = 4.0
+
+
+def _finest_period_px(spec: PatternSpec, rig: simulate.Rig) -> float:
+    """Camera pixels per period of `spec`'s finest carrier, at the rig's working distance."""
+    points = np.array([[0.0, 0.0, rig.working_distance_mm], [1.0, 0.0, rig.working_distance_mm]])
+    cam, proj = rig.calibration.camera.project(points), rig.calibration.projector.project(points)
+    magnification = np.linalg.norm(cam[1] - cam[0]) / np.linalg.norm(proj[1] - proj[0])
+    return float(spec.orthogonal_lines / max(spec.all_carriers) * magnification)
+
+
+def _demo_specs(which: str, rig: simulate.Rig) -> dict[str, PatternSpec]:
+    """The demo's patterns; with "all", the phase pattern only where the camera resolves it."""
+    projector = rig.calibration.projector.size
+    specs = {"thesis": patterns.thesis_spec(projector), "best": patterns.default_spec(projector),
+             "phase": patterns.phase_spec(projector)}
+    if which == "both":
+        return {k: specs[k] for k in ("thesis", "best")}
+    if which != "all":
+        return {which: specs[which]}
+    period = _finest_period_px(specs["phase"], rig)
+    if period < _DEMO_MIN_PERIOD_PX:
+        click.echo(f"phase: left out, this camera sees its finest carrier at {period:.1f} px a period "
+                   f"(under {_DEMO_MIN_PERIOD_PX:g}); give a larger --camera", err=True)
+        del specs["phase"]
+    return specs
 
 
 def _accuracy_table(results: dict[str, tuple[evaluate.Accuracy, float]]) -> Table:
@@ -1482,6 +1506,7 @@ def _accuracy_table(results: dict[str, tuple[evaluate.Accuracy, float]]) -> Tabl
         table.add_column(name, justify="right")
     rows: list[tuple[str, Callable[[evaluate.Accuracy, float], str]]] = [
         ("stripe accuracy (% of lit px)", lambda a, s: f"{a.stripe_accuracy:.1%}"),
+        ("off > 1 stripe (% of lit px)", lambda a, s: f"{a.far_stripe:.2%}"),
         ("completeness (% of lit px)", lambda a, s: f"{a.completeness:.1%}"),
         ("outliers (% of points)", lambda a, s: f"{a.outliers:.2%}"),
         ("gross outliers (% of points)", lambda a, s: f"{a.gross_outliers:.2%}"),
@@ -1507,8 +1532,11 @@ Examples:
 @_camera_option(default=f"{THESIS_CAMERA[0]}x{THESIS_CAMERA[1]}", show_default=True, help="Camera size.")
 @_projector_option(default=f"{THESIS_PROJECTOR[0]}x{THESIS_PROJECTOR[1]}", show_default=True,
                    help="Projector size.")
-@click.option("--pattern", "which", type=click.Choice(["best", "thesis", "both"]), default="both",
-              show_default=True, help="sliscan's best pattern, the thesis's, or both side by side.")
+@click.option("--pattern", "which", type=click.Choice(["all", "best", "thesis", "phase", "both"]), default="all",
+              show_default=True,
+              help="sliscan's best stripe pattern, the thesis's, the stripes plus a phase channel (sub-stripe "
+                   "depth, issue 8), the first two ('both'), or all three side by side (the phase pattern "
+                   "where the camera resolves its finest carrier).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the noise and of the albedo.")
 @click.option("--supersample", type=click.IntRange(min=1), default=1, show_default=True,
               help="Sub-pixels per camera pixel per axis (render time grows with its square).")
@@ -1526,7 +1554,7 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
     """
     t0 = time.perf_counter()
     rig = simulate.virtual_rig(camera_size=camera, projector_size=projector)
-    specs = _demo_specs(which, projector)
+    specs = _demo_specs(which, rig)
     scene = simulate.sphere_scene()
     conditions = _conditions(albedo="smooth", ambient=0.1, gamma=2.2, blur=1.0, noise=True,
                              supersample=supersample, seed=seed)

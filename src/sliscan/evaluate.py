@@ -4,6 +4,9 @@ The figures every accuracy claim in sliscan rests on:
 
 * **stripe accuracy**: of the pixels the projector lights, the fraction decoded to exactly the
   stripe the ground-truth projector row lies in;
+* **far off**: of the lit pixels, the fraction with a valid point whose stripe is more than
+  one stripe from the true one (issue 8's "wrong stripe": a neighbouring stripe along a
+  border is a blurred border, two stripes off is a wrong code);
 * **completeness**: the fraction of lit pixels that got a valid point;
 * **3D error**: distance between each valid point and the true surface point of that pixel
   (mm): RMS, median, 95th percentile;
@@ -44,6 +47,7 @@ class Accuracy:
     completeness: float
     stripe_accuracy: float
     wrong_stripe: float
+    far_stripe: float
     outliers: float
     gross_outliers: float
     rms_mm: float
@@ -234,6 +238,8 @@ def accuracy(result: ScanResult, truth: GroundTruth, spec: PatternSpec, calibrat
                     completeness=surface.completeness,
                     stripe_accuracy=float(correct.sum() / max(surface.lit_pixels, 1)),
                     wrong_stripe=float((valid & lit & ~correct).sum() / max(surface.valid_pixels, 1)),
+                    far_stripe=float((valid & lit & (np.abs(result.stripe - stripes) > 1)).sum()
+                                     / max(surface.lit_pixels, 1)),
                     outliers=surface.outliers, gross_outliers=gross, rms_mm=surface.rms_mm, median_mm=surface.median_mm,
                     p95_mm=surface.p95_mm, oracle_rms_mm=orms, oracle_median_mm=omed)
 
