@@ -9,14 +9,16 @@ Two demodulators share one output type, `Demodulated`:
 * `demodulate_bandpass` is the thesis's: per carrier a Butterworth band-pass along the line
   with the other carriers notched, applied to the one-sided spectrum (the analytic signal,
   eqs. 3.3-3.4), whose magnitude is the envelope.
-* `demodulate_window` (the default) divides each line by its local mean (the albedo), then
-  fits a DC, a ramp and every carrier by least squares in a sliding window of one period of
-  the carriers' common spacing (where the carriers are orthogonal), with every sum taken from
-  cumulative sums.  Each pixel takes the window placement (ending at, centred on, or starting
-  at the pixel) that the model explains best, so a window need not straddle a depth edge, a
-  shadow border or an albedo edge when a clean one exists on either side: this is what keeps
-  neighbours' light out of a pixel's envelopes.  Each line has its own carrier frequencies
-  (`detect_carriers` measures them band by band) and a window of a whole number of periods.
+* `demodulate_window` (the default) divides the capture by the sharp steps of its albedo
+  (`normalise_albedo`: where a line stops repeating itself one carrier period later), each
+  line by its local mean (the smooth albedo), then fits a DC, a ramp and every carrier by
+  least squares in a sliding window of one period of the carriers' common spacing (where
+  the carriers are orthogonal), with every sum taken from cumulative sums.  Each pixel takes
+  the window placement (ending at, centred on, or starting at the pixel) that the model
+  explains best, so a window need not straddle a depth edge, a shadow border or an albedo
+  edge when a clean one exists on either side: this is what keeps neighbours' light out of a
+  pixel's envelopes.  Each line has its own carrier frequencies (`detect_carriers` measures
+  them band by band) and a window of a whole number of periods.
 
 Frequencies are in cycles per camera pixel along the carrier direction (camera `x` for the
 ``rows`` orientation, camera `y` for ``columns``).
@@ -25,10 +27,12 @@ Frequencies are in cycles per camera pixel along the carrier direction (camera `
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+import scipy.ndimage
 from numpy.typing import NDArray
 
 from sliscan._threads import default_workers, over_rows
@@ -471,11 +475,12 @@ def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: N
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
-                      workers: int | None = None) -> Demodulated:
+                      albedo: str | None = "steps", workers: int | None = None) -> Demodulated:
     """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
 
-    In every window of one spacing period the line, divided by its flat field, is fitted
-    with a DC, a ramp (albedo gradients) and the carriers (`_fit_line`); all sums come from
+    The capture is first divided by the sharp steps of its albedo (`normalise_albedo`), which
+    no window can fit.  In every window of one spacing period the line, divided by its flat
+    field, is fitted with a DC, a ramp (albedo gradients) and the carriers (`_fit_line`); all sums come from
     running sums, so the cost does not depend on the window length.  Each line gets the
     window of its own carrier scale (`Carriers.line_windows`), so its carriers complete
     whole periods in it.  The lines are fitted by a compiled kernel, in parallel.
@@ -493,6 +498,10 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         leaves less than half its unexplained energy: where the code changes gradually
         across the window (an oblique stripe border) the centred fit is the unbiased one.
         If false, always the centred window.
+    albedo : str or None
+        Albedo estimate the capture is divided by before the fit (`normalise_albedo`; the
+        outputs are multiplied back, so they stay in image units and the ratios the decoder
+        takes are those of the normalised capture).  None: no normalisation.
     workers : int, optional
         Threads fitting lines in parallel (default: `default_workers`).
 
@@ -504,6 +513,9 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     workers = default_workers() if workers is None else workers
     img = np.ascontiguousarray(check_image("capture", image), dtype=np.float32)
     h, w = img.shape
+    gain = None
+    if albedo is not None:
+        img, gain = normalise_albedo(img, carriers, estimate=albedo)
     short = _short_window(carriers)
     windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (h,)), dtype=np.intp)
     if windows.max() > w:
@@ -513,10 +525,156 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
     over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit),
               h, workers)
+    if gain is not None:  # back to image units; every ratio (what the decoder uses) is unchanged
+        amp *= gain[None]
+        dc *= gain
+        unexplained *= gain * gain
+        var *= gain * gain
     # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
     dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
     noise = np.sqrt(2 * unexplained / dof[:, None])
     return Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise)
+
+
+#: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`;
+#: the others were measured worse, see ``benchmarks/albedo_normalisation.py``).
+ALBEDO_ESTIMATES = ("steps", "closing", "envelopes", "guided", "notch-log", "notch")
+#: `_albedo_steps` defaults: the smallest step kept (log units: a reflectance ratio of e = 2.7),
+#: where its apex is measured (fraction of a window from the peak) and how sharp it must be
+#: there (fall over the step's height).  Chosen on the captures that measure them (1296x972
+#: rig, sphere and steps, checker 0.25/0.9 and smooth albedo, seeds 0 and 1), so they may fit
+#: them: a threshold of 0.7 gained 0.7 points less on the checker and lost 0.25 more on the
+#: smooth albedo; 1.3 missed many checker edges (log 0.9/0.25 = 1.28) and gained 6 points less.
+STEP_THRESHOLD = 1.0
+STEP_APEX = 0.125
+STEP_SHARPNESS = 0.11
+
+
+def _shifted(values: NDArray[np.float64], shift: int) -> NDArray[np.float64]:
+    """``values[:, x - shift]`` along axis 1 (edge values repeated beyond the ends)."""
+    if shift > 0:
+        return np.concatenate([np.repeat(values[:, :1], shift, axis=1), values[:, :-shift]], axis=1)
+    return np.concatenate([values[:, -shift:], np.repeat(values[:, -1:], -shift, axis=1)], axis=1)
+
+
+def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, threshold: float = STEP_THRESHOLD,
+                  apex: float = STEP_APEX, sharpness: float = STEP_SHARPNESS) -> NDArray[np.float32]:
+    """Relative albedo made of the sharp steps found along each line (1 left of the first).
+
+    Within one code the pattern repeats every window ``T`` along the line, so where the albedo
+    steps by a factor ``r`` at ``x0`` the log capture minus itself one window earlier,
+    ``g(u) = log I(u) - log I(u - T)``, is ``log r`` on exactly ``[x0, x0 + T)`` and 0 around it,
+    whatever the pattern.  Its mean over the window starting at ``u`` (weighted by the smaller
+    of the two intensities, so the noise of the dark troughs counts little) is a triangle
+    peaking at ``x0``.  A smooth albedo gradient gives a plateau instead, which the second
+    difference at lag ``T`` removes, and a smooth bump a rounded top, which the apex test
+    rejects: a step's triangle has fallen by `apex` of its height `apex` windows from its
+    peak, and must have fallen by at least `sharpness` of it.  Peaks of the second difference
+    beyond `threshold` (log units) that are the largest within a window are the steps; their
+    running sum along the line is the log albedo.  A code change or a depth edge rarely
+    passes all three tests; where one does, the estimate has a false step, which costs what
+    the true step would have.
+    """
+    h, w = img.shape
+    floor = np.float32(0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6))
+    logi = np.log(np.maximum(img, floor))
+    out = np.zeros((h, w), dtype=np.float64)
+    for period in np.unique(windows):  # lines of one window length together (a handful)
+        rows = np.nonzero(windows == period)[0]
+        t = int(period)
+        if 3 * t >= w:
+            continue
+        lg, im = logi[rows].astype(np.float64), img[rows].astype(np.float64)
+        weighted, weight = np.zeros_like(lg), np.zeros_like(lg)
+        weight[:, t:] = np.maximum(np.minimum(im[:, t:], im[:, :-t]), floor)
+        weighted[:, t:] = weight[:, t:] * (lg[:, t:] - lg[:, :-t])
+        zero = np.zeros((rows.size, 1))
+        cum_g, cum_w = np.cumsum(np.hstack([zero, weighted]), axis=1), np.cumsum(np.hstack([zero, weight]), axis=1)
+        starts = np.arange(w)
+        ends = np.minimum(starts + t, w)
+        mean = (cum_g[:, ends] - cum_g[:, starts]) / np.maximum(cum_w[:, ends] - cum_w[:, starts], 1e-12)
+        peak = mean - 0.5 * (_shifted(mean, t) + _shifted(mean, -t))
+        strength = np.abs(peak)
+        q = max(int(round(apex * t)), 1)
+        fall = (mean - 0.5 * (_shifted(mean, q) + _shifted(mean, -q))) * np.sign(peak)
+        largest = scipy.ndimage.maximum_filter1d(strength, size=t | 1, axis=1, mode="nearest")
+        steps = (strength >= threshold) & (strength >= largest) & (fall >= sharpness * strength)
+        out[rows] = np.cumsum(np.where(steps, peak, 0.0), axis=1)
+    return np.exp(out).astype(np.float32)
+
+
+def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
+                     **options: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Divide a capture by an edge-preserving estimate of its albedo, line by line along axis 1.
+
+    A reflectance edge multiplies the whole pattern, so inside a window that straddles it the
+    carriers are no longer sinusoids of constant amplitude: the step's broadband spectrum lands
+    in every carrier band, and dividing by the local mean (the window demodulator's flat field)
+    cannot undo it.  Dividing by an estimate that follows the edge sharply but not the pattern
+    leaves the pattern, times a constant, on both sides.
+
+    Estimates (`estimate`; keyword `options` in brackets):
+
+    * ``"steps"`` (threshold, apex, sharpness; see `_albedo_steps`): only the sharp steps,
+      found where the capture stops repeating itself one carrier period later; between them
+      1, so a smooth albedo is left to the flat field.  The only one that helped (issue 8).
+    * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
+      (maximum then minimum filter).  It keeps a step exactly but also every flank of the
+      pattern's peaks where the albedo varies within a period: it loses 7 points of stripe
+      accuracy on the checker and 23 on the smooth albedo.
+    * ``"envelopes"`` (size): the geometric mean of the closing and the opening.
+    * ``"guided"`` (size = 1 window, eps = 4 times the median variance): a self-guided
+      filter of the log capture (He et al.), nearly a log-domain local mean.
+    * ``"notch-log"`` / ``"notch"`` (width = 0.25 spacings): the (log) capture with every
+      multiple of each line's carrier spacing notched out (Gaussian notches); in the log
+      domain the albedo adds to the pattern, but the pattern's harmonics spread past the
+      notches where the surface changes the carriers' local frequency.
+
+    Returns
+    -------
+    (normalised, albedo) : two (H, W) float32 arrays
+        ``image / albedo`` and the estimate (relative for ``"steps"``; floored at 1e-4 of the
+        image's maximum).
+    """
+    img = np.asarray(image, dtype=np.float32)
+    if estimate not in ALBEDO_ESTIMATES:
+        raise InputError(f"estimate must be one of {', '.join(ALBEDO_ESTIMATES)}, got {estimate!r}")
+    h, w = img.shape
+    windows = np.broadcast_to(carriers.line_windows(), (h,))
+    if estimate == "steps":
+        albedo = _albedo_steps(img, windows, **options)
+        return (img / albedo).astype(np.float32), albedo
+    floor = np.float32(max(float(img.max()), 1e-6) * 1e-4)
+    length = max(3, int(np.ceil(options.get("size", 1.0 if estimate == "guided" else 1.25) * float(windows.max()))))
+    if estimate in ("closing", "envelopes"):
+        albedo = scipy.ndimage.grey_closing(img, size=(1, length), mode="nearest")
+        if estimate == "envelopes":
+            lower = scipy.ndimage.grey_opening(img, size=(1, length), mode="nearest")
+            albedo = np.sqrt(np.maximum(albedo, floor) * np.maximum(lower, floor))
+    elif estimate == "guided":
+        # a = var / (var + eps): where the window's variance is mostly a step, larger than the
+        # pattern's, the output follows the capture; elsewhere it is the local mean
+        logi = np.log(np.maximum(img, floor)).astype(np.float64)
+        box = functools.partial(scipy.ndimage.uniform_filter1d, size=length, axis=1, mode="nearest")
+        mean = box(logi)
+        variance = np.maximum(box(logi * logi) - mean * mean, 0)
+        a = variance / (variance + options.get("eps", 4.0) * float(np.median(variance)) + 1e-12)
+        albedo = np.exp(box(a) * logi + box(mean - a * mean))
+    else:
+        pad = int(windows.max()) * 2
+        work = np.pad(img.astype(np.float64), ((0, 0), (pad, pad)), mode="reflect")
+        if estimate == "notch-log":
+            work = np.log(np.maximum(work, float(floor)))
+        n = work.shape[1]
+        first = carriers.line_frequencies(slice(0, h))[:, 0]
+        spacing = _common_spacing(carriers.frequencies) * first / carriers.frequencies[0]
+        harmonic = np.fft.rfftfreq(n)[None, :] / spacing[:, None]
+        k = np.round(harmonic)
+        gain = np.where(k >= 1, 1 - np.exp(-0.5 * ((harmonic - k) / (0.5 * options.get("width", 0.25))) ** 2), 1.0)
+        smooth = np.fft.irfft(np.fft.rfft(work, axis=1) * gain, n=n, axis=1)[:, pad : pad + w]
+        albedo = np.exp(smooth) if estimate == "notch-log" else smooth
+    albedo = np.maximum(albedo, floor).astype(np.float32)
+    return (img / albedo).astype(np.float32), albedo
 
 
 def butterworth_bandpass(freqs: NDArray[np.float64], centre: float, half_width: float, order: int) -> NDArray[np.float64]:
@@ -604,7 +762,7 @@ def check_exposure(image: NDArray[np.float32]) -> None:
 
 
 def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = "window",
-               carriers: Carriers | None = None) -> tuple[Demodulated, Carriers]:
+               carriers: Carriers | None = None, albedo: str | None = "steps") -> tuple[Demodulated, Carriers]:
     """Detect the carriers (unless given) and demodulate a capture in camera orientation.
 
     Parameters
@@ -617,6 +775,9 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
         `demodulate_window` (default) or the thesis's `demodulate_bandpass`.
     carriers : Carriers, optional
         Reuse carriers found earlier (e.g. for a video of the same rig).
+    albedo : str or None
+        ``"window"`` only: the albedo estimate the capture is divided by first
+        (`normalise_albedo`), None for none.
 
     Returns
     -------
@@ -629,8 +790,7 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     check_exposure(img)
     view = along_carriers(img, spec)
     found = carriers if carriers is not None else detect_carriers(img, spec)
-    run = demodulate_window if method == "window" else demodulate_bandpass
-    out = run(view, found)
+    out = demodulate_window(view, found, albedo=albedo) if method == "window" else demodulate_bandpass(view, found)
     if spec.orientation == "columns":
         def back(a: NDArray | None) -> NDArray | None:
             return None if a is None else np.ascontiguousarray(np.swapaxes(a, -1, -2))
