@@ -58,6 +58,7 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
     if not quick:
         # issue 8's variant that lost: the phase channel on the lowest carriers, the bits above
         base = patterns.phase_spec(projector)
+        specs.update({name: patterns.phase_spec(projector) for name in PHASE_VARIANTS})
         specs["4-bit + phase on low carriers"] = base.with_(carriers=tuple(sorted(base.phase_carriers + (base.carriers[0],), reverse=True)),
                                                             phase_carriers=tuple(sorted(base.carriers)[:3]))
         for bits in (6, 8):
@@ -66,6 +67,15 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
                 projector_size=projector, bits=bits, carriers=carriers, weights=(1.0,) * bits, a_p=0.5, b_p=0.5 / bits)
             specs[f"sliscan {bits}-bit"] = patterns.default_spec(projector, bits=bits)
     return specs
+
+
+#: Decoder variants of the phase pattern tried for issue 8 (Scanner keyword arguments), each a
+#: row of the table: what the default's parts are worth.
+PHASE_VARIANTS = {
+    "sliscan 4-bit + phase (no smoothing)": dict(fringe_options=dict(smooth=False)),
+    "sliscan 4-bit + phase (no rescue)": dict(fringe_options=dict(rescue=False)),
+    "sliscan 4-bit + phase (strict Gray code)": dict(decode_options=dict(min_snr=3.0, min_confidence=0.1)),
+}
 
 
 def conditions(albedo: str, seed: int) -> simulate.Conditions:
@@ -111,11 +121,13 @@ def main() -> None:
             scene = SCENES[scene_name]()
             for albedo in args.albedo.split(","):
                 for seed in range(args.seeds):
-                    capture = render_cached(args.captures, f"{name}_{scene_name}_{albedo}_{seed}_{args.camera}",
+                    key = "sliscan 4-bit + phase" if name in PHASE_VARIANTS else name  # same frames
+                    capture = render_cached(args.captures, f"{key}_{scene_name}_{albedo}_{seed}_{args.camera}",
                                             lambda: simulate.render(rig, scene, image, conditions(albedo, seed)))
                     for method in args.methods.split(","):
                         t0 = time.perf_counter()
-                        result = Scanner(spec, rig.calibration, method=method).scan(capture.image)
+                        result = Scanner(spec, rig.calibration, method=method,
+                                         **PHASE_VARIANTS.get(name, {})).scan(capture.image)
                         seconds = time.perf_counter() - t0
                         acc = accuracy(result, capture.truth, spec, rig.calibration)
                         row = dict(pattern=name, decoder=method, scene=scene_name, albedo=albedo, seed=seed,
@@ -172,16 +184,17 @@ def compare(rig: simulate.Rig, projector: tuple[int, int], args: argparse.Namesp
 def compare_markdown(rows: list[dict]) -> str:
     """The `--compare` rows as the README's Markdown table.
 
-    *PMP kept*: the median error of multi-frequency PMP on the same scene, conditions and seed
-    over this method's: the fraction of PMP's accuracy the method keeps.
+    *PMP kept*: the median and the RMS error of multi-frequency PMP on the same scene,
+    conditions and seed over this method's: the fraction of PMP's accuracy the method keeps.
     """
-    pmp = {(r["scene"], r["conditions"], r["seed"]): r["median_mm"] for r in rows if r["method"].startswith("PMP")}
+    pmp = {(r["scene"], r["conditions"], r["seed"]): r for r in rows if r["method"].startswith("PMP")}
     lines = ["| method | frames | scene | conditions | completeness | outliers | RMS (mm) | median (mm) "
-             "| p95 (mm) | PMP kept | sphere radius (mm) (fit rejected) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| p95 (mm) | PMP kept (median / RMS) | sphere radius (mm) (fit rejected) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         radius = "" if r["radius_mm"] != r["radius_mm"] else f"{r['radius_mm']:.2f} ({100 * r['fit_rejected']:.1f} %)"
         reference = pmp.get((r["scene"], r["conditions"], r["seed"]))
-        kept = "" if reference is None else f"{100 * reference / max(r['median_mm'], 1e-9):.1f} %"
+        kept = "" if reference is None else (f"{100 * reference['median_mm'] / max(r['median_mm'], 1e-9):.1f} % / "
+                                             f"{100 * reference['rms_mm'] / max(r['rms_mm'], 1e-9):.0f} %")
         lines.append(f"| {r['method']} | {r['frames']} | {r['scene']} | {r['conditions']} "
                      f"| {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {r['rms_mm']:.2f} "
                      f"| {r['median_mm']:.2f} | {r['p95_mm']:.2f} | {kept} | {radius} |")

@@ -225,7 +225,8 @@ def local_reference(line: NDArray[np.float32], sure: NDArray[np.bool_], coarse: 
 
 
 def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: PatternSpec, *,
-           max_disagreement: float = 0.5, min_modulation: float = 0.5) -> Decoded:
+           max_disagreement: float = 0.5, min_modulation: float = 0.5, smooth: bool = True,
+           rescue: bool = True) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -249,6 +250,11 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     min_modulation : float
         Drop pixels whose smoothed fringe modulation (1 for a clean fringe) is below this: a
         box that mixes two surfaces' phases, or noise (below 0.5: 70 % more than 5 lines off).
+    smooth : bool
+        Sum the phasors over the boxes of `smooth_phasors`; if false, each pixel's own phase
+        (for the benchmark's record: see the README's accuracy tables).
+    rescue : bool
+        Unwrap the pixels whose stripe is in doubt against `local_reference`; if false, drop them.
 
     Returns
     -------
@@ -268,8 +274,8 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     stripe_lines = spec.phase_lines / spec.stripes
     fringe_cam = spec.fringe_period / carriers.scale  # camera pixels per fringe period (about)
     max_jump = 1.5 * stripe_lines
-    summed = smooth_phasors(phasor, coarse, along_carriers=carriers.window,
-                            along_phase=max(1, int(round(fringe_cam / 8))) | 1, max_jump=max_jump)
+    summed = (smooth_phasors(phasor, coarse, along_carriers=carriers.window,
+                             along_phase=max(1, int(round(fringe_cam / 8))) | 1, max_jump=max_jump) if smooth else phasor)
     phase = np.arctan2(summed[1], summed[0])
     modulation = np.hypot(summed[0], summed[1]) / np.maximum(0.5 * summed[2], 1e-12)
     line = unwrap(phase, coarse, spec)
@@ -278,9 +284,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     reference = local_reference(line, sure, coarse, radius_carriers=carriers.window,
                                 radius_phase=max(1, int(round(fringe_cam / 4))), max_jump=max_jump)
     with np.errstate(invalid="ignore"):
-        rescue = unwrap(phase, reference, spec)
-        rescued = strong & ~sure & (np.abs(rescue - reference) <= spec.fringe_period / 4)
-    line = frame(np.where(sure, line, np.where(rescued, rescue, np.float32(np.nan))).astype(np.float32))
+        repaired = unwrap(phase, reference, spec)
+        rescued = strong & ~sure & (np.abs(repaired - reference) <= spec.fringe_period / 4) & rescue
+    line = frame(np.where(sure, line, np.where(rescued, repaired, np.float32(np.nan))).astype(np.float32))
     valid = np.isfinite(line)
     stripe = np.where(valid, stripe_of_line(line, spec), -1).astype(np.int16)
     return replace(decoded, proj_map=np.ascontiguousarray(line), stripe=stripe, valid=valid)

@@ -187,6 +187,8 @@ class Scanner:
     decode_options : dict
         Keyword arguments for `sliscan.decode.decode` (thresholds), or for multi-frame kinds
         `sliscan.pmp.decode_pmp` / `sliscan.graycode.decode_graycode`.
+    fringe_options : dict
+        Patterns with a phase channel: keyword arguments for `sliscan.fringe.refine`.
     reuse_carriers : bool
         Detect the carriers in the first frame and reuse them for later frames.
     min_angle_deg : float
@@ -217,6 +219,7 @@ class Scanner:
     calibration: Calibration
     method: str = "window"
     decode_options: dict[str, Any] = field(default_factory=dict)
+    fringe_options: dict[str, Any] = field(default_factory=dict)
     reuse_carriers: bool = False
     min_angle_deg: float = 2.0
     remove_speckles: bool = True
@@ -277,7 +280,8 @@ class Scanner:
         t0 = time.perf_counter()
         demod, carriers = self.demodulate(image)
         t1 = time.perf_counter()
-        decoded = fringe.refine(decode(demod, self.spec, **self.decode_options), demod, carriers, self.spec)
+        decoded = fringe.refine(decode(demod, self.spec, **self.decode_options), demod, carriers, self.spec,
+                                **self.fringe_options)
         t2 = time.perf_counter()
         points = self.triangulator(self.spec.orientation)(decoded.proj_map, decoded.valid)
         valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
