@@ -5,7 +5,7 @@ import pytest
 
 from sliscan import InputError, patterns, simulate
 from sliscan.decode import decode
-from sliscan.demodulate import (Carriers, demodulate, demodulate_bandpass, demodulate_window, detect_carriers,
+from sliscan.demodulate import (Carriers, _albedo_steps, demodulate, demodulate_bandpass, demodulate_window, detect_carriers,
                                  normalise_albedo)
 from sliscan.evaluate import true_stripes
 
@@ -189,3 +189,18 @@ def test_albedo_normalisation_decodes_a_checker_better(small_rig):
     assert steps >= plain + 0.05
     assert steps_wrong <= 0.5 * plain_wrong
     assert figures("smooth", "steps")[0] == pytest.approx(figures("smooth", None)[0], abs=0.01)
+
+
+def test_albedo_steps_kernel_equals_the_numpy_form():
+    from albedo_reference import albedo_steps
+
+    rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768))
+    spec = patterns.default_spec((1024, 768))
+    conditions = simulate.Conditions(albedo=simulate.CheckerAlbedo(square_mm=40, low=0.25, high=0.9), seed=2)
+    image = simulate.render(rig, simulate.tilted_plane_scene(), patterns.render_pattern(spec), conditions).image
+    img = np.asarray(image, np.float32) / np.float32(255) if image.dtype == np.uint8 else np.asarray(image, np.float32)
+    windows = np.broadcast_to(detect_carriers(img, spec).line_windows(), (img.shape[0],))
+    kernel, reference = _albedo_steps(img, windows), albedo_steps(img, windows)
+    assert np.mean(reference != 1) > 0.2  # the checker's steps were found
+    # float64 logs in the kernel, float32 in the numpy form: a step at a threshold may flip
+    assert np.mean(np.isclose(kernel, reference, rtol=1e-4)) > 0.999

@@ -550,11 +550,45 @@ STEP_APEX = 0.125
 STEP_SHARPNESS = 0.11
 
 
-def _shifted(values: NDArray[np.float64], shift: int) -> NDArray[np.float64]:
-    """``values[:, x - shift]`` along axis 1 (edge values repeated beyond the ends)."""
-    if shift > 0:
-        return np.concatenate([np.repeat(values[:, :1], shift, axis=1), values[:, :-shift]], axis=1)
-    return np.concatenate([values[:, -shift:], np.repeat(values[:, -1:], -shift, axis=1)], axis=1)
+@numba.njit(cache=True, nogil=True)
+def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], apexes: NDArray[np.intp], floor: float,
+                       threshold: float, sharpness: float, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
+    and `apexes` (the apex test's lag, pixels) per row.  Indices beyond a line's ends take the
+    value at the end."""
+    w = img.shape[1]
+    cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
+    mean, peak, strength = np.empty(w), np.empty(w), np.empty(w)
+    for r in rows:
+        t, q = windows[r], apexes[r]
+        if 3 * t >= w:
+            out[r] = 1.0
+            continue
+        for x in range(w):
+            g = wt = 0.0
+            if x >= t:
+                a, b = max(img[r, x], floor), max(img[r, x - t], floor)
+                wt = max(min(img[r, x], img[r, x - t]), floor)
+                g = wt * (np.log(a) - np.log(b))
+            cum_g[x + 1], cum_w[x + 1] = cum_g[x] + g, cum_w[x] + wt
+        for u in range(w):
+            e = min(u + t, w)
+            mean[u] = (cum_g[e] - cum_g[u]) / max(cum_w[e] - cum_w[u], 1e-12)
+        for x in range(w):
+            peak[x] = mean[x] - 0.5 * (mean[max(x - t, 0)] + mean[min(x + t, w - 1)])
+            strength[x] = abs(peak[x])
+        half = (t | 1) // 2
+        total = 0.0
+        for x in range(w):
+            s = strength[x]
+            if s >= threshold:
+                largest = 0.0
+                for k in range(x - half, x + half + 1):
+                    largest = max(largest, strength[min(max(k, 0), w - 1)])
+                fall = (mean[x] - 0.5 * (mean[max(x - q, 0)] + mean[min(x + q, w - 1)])) * np.sign(peak[x])
+                if s >= largest and fall >= sharpness * s:
+                    total += peak[x]
+            out[r, x] = np.exp(total)
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, threshold: float = STEP_THRESHOLD,
@@ -573,34 +607,16 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, thresh
     beyond `threshold` (log units) that are the largest within a window are the steps; their
     running sum along the line is the log albedo.  A code change or a depth edge rarely
     passes all three tests; where one does, the estimate has a false step, which costs what
-    the true step would have.
+    the true step would have.  Lines in threads (a compiled kernel, `_albedo_steps_rows`).
     """
-    h, w = img.shape
-    floor = np.float32(0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6))
-    logi = np.log(np.maximum(img, floor))
-    out = np.zeros((h, w), dtype=np.float64)
-    for period in np.unique(windows):  # lines of one window length together (a handful)
-        rows = np.nonzero(windows == period)[0]
-        t = int(period)
-        if 3 * t >= w:
-            continue
-        lg, im = logi[rows].astype(np.float64), img[rows].astype(np.float64)
-        weighted, weight = np.zeros_like(lg), np.zeros_like(lg)
-        weight[:, t:] = np.maximum(np.minimum(im[:, t:], im[:, :-t]), floor)
-        weighted[:, t:] = weight[:, t:] * (lg[:, t:] - lg[:, :-t])
-        zero = np.zeros((rows.size, 1))
-        cum_g, cum_w = np.cumsum(np.hstack([zero, weighted]), axis=1), np.cumsum(np.hstack([zero, weight]), axis=1)
-        starts = np.arange(w)
-        ends = np.minimum(starts + t, w)
-        mean = (cum_g[:, ends] - cum_g[:, starts]) / np.maximum(cum_w[:, ends] - cum_w[:, starts], 1e-12)
-        peak = mean - 0.5 * (_shifted(mean, t) + _shifted(mean, -t))
-        strength = np.abs(peak)
-        q = max(int(round(apex * t)), 1)
-        fall = (mean - 0.5 * (_shifted(mean, q) + _shifted(mean, -q))) * np.sign(peak)
-        largest = scipy.ndimage.maximum_filter1d(strength, size=t | 1, axis=1, mode="nearest")
-        steps = (strength >= threshold) & (strength >= largest) & (fall >= sharpness * strength)
-        out[rows] = np.cumsum(np.where(steps, peak, 0.0), axis=1)
-    return np.exp(out).astype(np.float32)
+    img = np.ascontiguousarray(img, dtype=np.float32)
+    windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
+    apexes = np.maximum(np.round(apex * windows), 1).astype(np.intp)
+    floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
+    out = np.empty(img.shape, dtype=np.float32)
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, apexes, floor, threshold, sharpness, rows, out),
+              img.shape[0])
+    return out
 
 
 def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
