@@ -44,11 +44,15 @@ from accuracy import conditions  # noqa: E402
 PROJECTOR = (1024, 768)
 
 
-def frame(camera: tuple[int, int], cache: Path) -> tuple[np.ndarray, simulate.Rig, PatternSpec]:
+#: `--pattern` choices: sliscan's stripe pattern and the one with a phase channel (issue 8).
+PATTERNS = {"default": patterns.default_spec, "phase": patterns.phase_spec}
+
+
+def frame(camera: tuple[int, int], cache: Path, pattern: str = "default") -> tuple[np.ndarray, simulate.Rig, PatternSpec]:
     """The sphere capture for `camera` (rendered once, then read from `cache`), its rig and spec."""
     rig = simulate.virtual_rig(camera_size=camera, projector_size=PROJECTOR)
-    spec = patterns.default_spec(PROJECTOR)
-    path = cache / f"sphere_{camera[0]}x{camera[1]}.npy"
+    spec = PATTERNS[pattern](PROJECTOR)
+    path = cache / f"sphere_{camera[0]}x{camera[1]}{'' if pattern == 'default' else '_' + pattern}.npy"
     if not path.exists():
         cache.mkdir(parents=True, exist_ok=True)
         capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions("smooth", 0))
@@ -90,7 +94,7 @@ def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, method:
     return out
 
 
-def peak_memory_mib(camera: tuple[int, int], method: str, cache: Path) -> float:
+def peak_memory_mib(camera: tuple[int, int], method: str, cache: Path, pattern: str = "default") -> float:
     """Peak resident memory (MiB) of a fresh process that loads the frame, builds a Scanner and
     scans once, with the compiled kernels already cached.
 
@@ -99,11 +103,11 @@ def peak_memory_mib(camera: tuple[int, int], method: str, cache: Path) -> float:
     of the timing runs) would report this process's size instead of its own."""
     code = ("import sys; sys.path.insert(0, {bench!r}); from speed import frame; "
             "from sliscan.pipeline import Scanner; from pathlib import Path; "
-            "image, rig, spec = frame({camera!r}, Path({cache!r})); "
+            "image, rig, spec = frame({camera!r}, Path({cache!r}), {pattern!r}); "
             "Scanner(spec, rig.calibration, method={method!r}).scan(image); "
             "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM')))")
     command = [sys.executable, "-c", code.format(bench=str(Path(__file__).parent), camera=camera, cache=str(cache),
-                                                 method=method)]
+                                                 method=method, pattern=pattern)]
     # twice: a first process may compile the numba kernels (LLVM's memory, not the scan's) and caches them
     outs = [subprocess.run(command, check=True, capture_output=True, text=True).stdout for _ in range(2)]
     return int(outs[-1].split()[-1]) / 1024
@@ -191,16 +195,19 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=7)
     parser.add_argument("--methods", default="window,bandpass")
     parser.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "sliscan-speed-frames"))
+    parser.add_argument("--pattern", choices=sorted(PATTERNS), default="default",
+                        help="the scanned pattern: sliscan's stripes, or with a phase channel (issue 8)")
+    parser.add_argument("--no-peers", action="store_true", help="time sliscan only")
     parser.add_argument("--json", help="write the report as JSON to this file")
     parser.add_argument("--markdown", help="also write the tables as Markdown to this file")
     args = parser.parse_args()
     cameras = [(1280, 1024)] if args.quick else [(1280, 1024), (2592, 1944)]
     runs = 3 if args.quick else args.runs
     cache = Path(args.cache)
-    report: dict = {"stages": [], "peers": [], "memory": []}
+    report: dict = {"pattern": args.pattern, "stages": [], "peers": [], "memory": []}
     for camera in cameras:
         name = f"{camera[0]}x{camera[1]}"
-        image, rig, spec = frame(camera, cache)
+        image, rig, spec = frame(camera, cache, args.pattern)
         scans = {}
         for method in args.methods.split(","):
             for stage, t in stage_times(image, rig, spec, method, runs).items():
@@ -209,7 +216,10 @@ def main() -> None:
                     scans[method] = t["median"]
                 print(f"{name} {method:8s} {stage:12s} {1e3 * t['median']:9.1f} ms "
                       f"({1e3 * t['min']:.1f}-{1e3 * t['max']:.1f}, {t['runs']} runs)", flush=True)
-            report["memory"].append({"camera": name, "method": method, "mib": peak_memory_mib(camera, method, cache)})
+            report["memory"].append({"camera": name, "method": method,
+                                     "mib": peak_memory_mib(camera, method, cache, args.pattern)})
+        if args.no_peers:
+            continue
         ours = scans.get("window", next(iter(scans.values())))
         for peer, t in (("OpenCV PSP phase + unwrap (3 frames; its FTP crashes)", opencv_psp(image, runs)),
                         ("OpenCV Gray code decode (stereo, 2 x 22 frames)", opencv_graycode(camera, runs))):
