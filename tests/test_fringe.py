@@ -64,6 +64,20 @@ def test_unwrap_is_exact_within_half_a_period_of_the_truth(rng):
     np.testing.assert_allclose(fringe.unwrap(wrapped, coarse, spec), truth, atol=1e-3)
 
 
+def test_the_kernels_unwrap_and_number_stripes_as_the_numpy_forms(rng, rig):
+    spec = patterns.phase_spec((1024, 768))
+    phase, reference = rng.uniform(-np.pi, np.pi, 2000), rng.uniform(-20, 790, 2000)
+    numpy_form = fringe.unwrap(phase, reference, spec)
+    kernel = [fringe._unwrapped(p, r, spec.fringe_period) for p, r in zip(phase, reference)]
+    np.testing.assert_allclose(kernel, numpy_form, atol=1e-3)
+    small = patterns.phase_spec((512, 384))
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(small), clean())
+    decoded = Scanner(small, rig.calibration).scan_stages(capture.image)[1].decoded
+    line = decoded.proj_map[decoded.valid]
+    np.testing.assert_array_equal(decoded.stripe[decoded.valid], patterns.stripe_of_line(line, small))
+    assert np.all(decoded.stripe[~decoded.valid] == -1)
+
+
 def test_channel_levels_recovers_gains_and_offsets_on_a_lopsided_scene(rng):
     spec = patterns.phase_spec((1024, 768))
     # phases crowded into a third of the circle, and each pixel's own share of projector light

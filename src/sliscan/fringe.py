@@ -60,8 +60,17 @@ class ChannelLevels:
     offset: NDArray[np.float64]
 
 
+#: Pixels `channel_levels` samples (about).
+LEVEL_SAMPLES = 5_000
+
+
+def sample_step(mask: NDArray[np.bool_], limit: int) -> int:
+    """Stride of the regular grid that thins the pixels of `mask` to about `limit`."""
+    return max(1, int(np.sqrt(max(int(mask.sum()), 1) / limit)))
+
+
 def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: PatternSpec, *,
-                   limit: int = 5_000, tolerance: float = 1e-4, max_iterations: int = 200) -> ChannelLevels:
+                   limit: int = LEVEL_SAMPLES, tolerance: float = 1e-4, max_iterations: int = 200) -> ChannelLevels:
     """Gains and offsets of the phase carriers, estimated from the capture.
 
     Each pixel's ratios follow ``m (offset_n + gain_n I_n(phi))``: `m`, the pixel's share of
@@ -81,7 +90,7 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
     mask : (H, W) bool array
         Pixels to learn from (decoded, lit), thinned to about `limit` on a regular grid.
     """
-    step = max(1, int(np.sqrt(max(mask.sum(), 1) / limit)))
+    step = sample_step(mask, limit)
     grid = mask[::step, ::step]
     samples = ratios[:, ::step, ::step][:, grid].astype(np.float64)  # (N, M)
     n = samples.shape[0]
@@ -114,19 +123,43 @@ def _phasor_parts(levels: NDArray[np.floating], shifts: NDArray[np.float64]) -> 
     return np.tensordot(np.cos(shifts), levels, 1), np.tensordot(np.sin(shifts), levels, 1)
 
 
-def phasors(ratios: NDArray[np.float32], levels: ChannelLevels, weight: NDArray[np.float32],
-            spec: PatternSpec) -> NDArray[np.float32]:
-    """The fringe's phasor at every pixel: ``(3, H, W)`` float32 = (real, imaginary, DC), each
-    times `weight`.
+@numba.njit(cache=True, nogil=True)
+def _phasor_rows(amplitude: NDArray[np.float32], first: int, dc: NDArray[np.float32], valid: NDArray[np.bool_],
+                 gain: NDArray[np.float64], offset: NDArray[np.float64], cos_shift: NDArray[np.float64],
+                 sin_shift: NDArray[np.float64], rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`phasors` on the given `rows`: `amplitude` ``(C, H, W)`` with the phase carriers from
+    index `first`; `out` ``(3, H, W)``."""
+    n = gain.size
+    for r in rows:
+        for x in range(dc.shape[1]):
+            if not valid[r, x]:
+                out[0, r, x] = out[1, r, x] = out[2, r, x] = 0.0
+                continue
+            d = max(dc[r, x], 1e-6)
+            c = s = t = 0.0
+            for k in range(n):
+                level = (amplitude[first + k, r, x] / d - offset[k]) / gain[k]
+                c += level * cos_shift[k]
+                s += level * sin_shift[k]
+                t += level
+            out[0, r, x], out[1, r, x], out[2, r, x] = c * dc[r, x], s * dc[r, x], t * dc[r, x]
 
-    With ``level_n = (ratio_n - offset_n) / gain_n`` = ``m (1 + cos(phi - 2 pi n / N)) / 2``,
-    ``sum_n level_n exp(i 2 pi n / N) = m (N / 4) exp(i phi)`` and ``sum_n level_n = m N / 2``,
-    so ``|phasor| / (DC / 2)`` is the fringe's modulation depth (1 for a clean fringe).
+
+def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels, spec: PatternSpec) -> NDArray[np.float32]:
+    """The fringe's phasor at every pixel: ``(3, H, W)`` float32 = (real, imaginary, DC), each
+    times the local DC (0 where not `valid`).
+
+    With ``level_n = (ratio_n - offset_n) / gain_n`` = ``m (1 + cos(phi - 2 pi n / N)) / 2``
+    (``ratio_n`` the phase carrier's envelope over the DC), ``sum_n level_n exp(i 2 pi n / N) =
+    m (N / 4) exp(i phi)`` and ``sum_n level_n = m N / 2``, so ``|phasor| / (DC / 2)`` is the
+    fringe's modulation depth (1 for a clean fringe).  A compiled kernel, rows in threads.
     """
     shifts = phase_shifts(spec)
-    lv = (ratios - levels.offset[:, None, None].astype(np.float32)) / levels.gain[:, None, None].astype(np.float32)
-    c, s = _phasor_parts(lv, shifts)
-    return np.stack([c * weight, s * weight, lv.sum(axis=0) * weight]).astype(np.float32)
+    out = np.empty((3, *demod.dc.shape), dtype=np.float32)
+    args = (np.ascontiguousarray(demod.amplitude), spec.bits, np.ascontiguousarray(demod.dc), np.ascontiguousarray(valid),
+            levels.gain.astype(np.float64), levels.offset.astype(np.float64), np.cos(shifts), np.sin(shifts))
+    over_rows(lambda rows: _phasor_rows(*args, rows, out), out.shape[1])
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -192,6 +225,54 @@ def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, 
     rows = _twiced_box(phasor, coarse, along_carriers, max_jump)
     columns = _segment_box(rows.transpose(0, 2, 1), coarse.T, along_phase // 2, max_jump)
     return np.ascontiguousarray(columns.transpose(0, 2, 1))
+
+
+@numba.njit(cache=True, inline="always")
+def _unwrapped(phase: float, reference: float, period: float) -> float:
+    """The projector line of wrapped `phase` in the fringe period nearest to line `reference`."""
+    order = np.round(((reference + 0.5) * 2 * np.pi / period - phase) / (2 * np.pi))
+    return (phase + 2 * np.pi * order) * period / (2 * np.pi) - 0.5
+
+
+@numba.njit(cache=True, nogil=True)
+def _unwrap_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], period: float, min_modulation: float,
+                 max_disagreement: float, rows: NDArray[np.intp], line: NDArray[np.float32], strong: NDArray[np.bool_],
+                 sure: NDArray[np.bool_]) -> None:
+    """Per pixel of `rows`: the phase of the summed phasor unwrapped against `coarse` (`line`,
+    NaN where `coarse` is), modulation at least `min_modulation` (`strong`), and the line within
+    `max_disagreement` projector lines of `coarse` as well (`sure`)."""
+    for r in rows:
+        for x in range(coarse.shape[1]):
+            centre = coarse[r, x]
+            if not np.isfinite(centre):
+                line[r, x], strong[r, x], sure[r, x] = np.nan, False, False
+                continue
+            re, im = summed[0, r, x], summed[1, r, x]
+            value = _unwrapped(np.arctan2(im, re), centre, period)
+            line[r, x] = value
+            strong[r, x] = np.hypot(re, im) >= min_modulation * max(0.5 * summed[2, r, x], 1e-12)
+            sure[r, x] = strong[r, x] and abs(value - centre) <= max_disagreement
+
+
+@numba.njit(cache=True, nogil=True)
+def _rescue_rows(summed: NDArray[np.float32], line: NDArray[np.float32], strong: NDArray[np.bool_],
+                 sure: NDArray[np.bool_], reference: NDArray[np.float32], period: float, rescue: bool, stripes: int,
+                 lines: int, rows: NDArray[np.intp], out: NDArray[np.float32], stripe: NDArray[np.int16]) -> None:
+    """Per pixel of `rows`: the sure line, or a strong pixel's phase unwrapped against
+    `reference` if it lands within a quarter period of it (and `rescue`), else NaN; `stripe`:
+    the line's stripe (`patterns.stripe_of_line`), -1 for NaN or beyond the projector."""
+    for r in rows:
+        for x in range(line.shape[1]):
+            value = np.float32(np.nan)
+            if sure[r, x]:
+                value = line[r, x]
+            elif rescue and strong[r, x] and np.isfinite(reference[r, x]):
+                repaired = _unwrapped(np.arctan2(summed[1, r, x], summed[0, r, x]), reference[r, x], period)
+                if abs(repaired - reference[r, x]) <= period / 4:
+                    value = repaired
+            out[r, x] = value
+            nearest = np.floor(value + 0.5)
+            stripe[r, x] = int(np.floor((nearest + 0.5) * stripes / lines)) if 0 <= nearest < lines else -1
 
 
 def unwrap(phase: NDArray[np.floating], coarse: NDArray[np.floating], spec: PatternSpec) -> NDArray[np.float32]:
@@ -265,28 +346,28 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     n = len(spec.phase_carriers)
     if n == 0:
         return decoded
-    frame = lambda image: along_carriers(image, spec)  # noqa: E731  (carriers along axis 1; own inverse)
-    ratios = demod.amplitude[spec.bits:spec.bits + n] / np.maximum(demod.dc, np.float32(1e-6))
-    levels = channel_levels(ratios, decoded.valid, spec)
-    weight = np.where(decoded.valid, demod.dc, np.float32(0)).astype(np.float32)
-    phasor = np.stack([frame(p) for p in phasors(ratios, levels, weight, spec)])
+    frame = lambda image: np.ascontiguousarray(along_carriers(image, spec))  # noqa: E731  (a transpose for columns)
+    step = sample_step(decoded.valid, LEVEL_SAMPLES)  # the ratios of channel_levels' sample only
+    sample = (demod.amplitude[spec.bits:spec.bits + n, ::step, ::step]
+              / np.maximum(demod.dc[::step, ::step], np.float32(1e-6)))
+    levels = channel_levels(sample, decoded.valid[::step, ::step], spec)
+    phasor = phasors(demod, decoded.valid, levels, spec)
+    phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
     stripe_lines = spec.phase_lines / spec.stripes
     fringe_cam = spec.fringe_period / carriers.scale  # camera pixels per fringe period (about)
     max_jump = 1.5 * stripe_lines
     summed = (smooth_phasors(phasor, coarse, along_carriers=carriers.window,
                              along_phase=max(1, int(round(fringe_cam / 8))) | 1, max_jump=max_jump) if smooth else phasor)
-    phase = np.arctan2(summed[1], summed[0])
-    modulation = np.hypot(summed[0], summed[1]) / np.maximum(0.5 * summed[2], 1e-12)
-    line = unwrap(phase, coarse, spec)
-    strong = np.isfinite(coarse) & (modulation >= min_modulation)
-    sure = strong & (np.abs(line - coarse) <= max_disagreement * stripe_lines)
+    shape = coarse.shape
+    line, strong, sure = np.empty(shape, np.float32), np.empty(shape, bool), np.empty(shape, bool)
+    period = float(spec.fringe_period)
+    over_rows(lambda rows: _unwrap_rows(summed, coarse, period, min_modulation, max_disagreement * stripe_lines,
+                                        rows, line, strong, sure), shape[0])
     reference = local_reference(line, sure, coarse, radius_carriers=carriers.window,
                                 radius_phase=max(1, int(round(fringe_cam / 4))), max_jump=max_jump)
-    with np.errstate(invalid="ignore"):
-        repaired = unwrap(phase, reference, spec)
-        rescued = strong & ~sure & (np.abs(repaired - reference) <= spec.fringe_period / 4) & rescue
-    line = frame(np.where(sure, line, np.where(rescued, repaired, np.float32(np.nan))).astype(np.float32))
-    valid = np.isfinite(line)
-    stripe = np.where(valid, stripe_of_line(line, spec), -1).astype(np.int16)
-    return replace(decoded, proj_map=np.ascontiguousarray(line), stripe=stripe, valid=valid)
+    out, stripe = np.empty(shape, np.float32), np.empty(shape, np.int16)
+    over_rows(lambda rows: _rescue_rows(summed, line, strong, sure, reference, period, rescue, spec.stripes,
+                                        spec.phase_lines, rows, out, stripe), shape[0])
+    out, stripe = frame(out), frame(stripe)
+    return replace(decoded, proj_map=out, stripe=stripe, valid=np.isfinite(out))
