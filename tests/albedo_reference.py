@@ -18,22 +18,7 @@ def _shifted(values: NDArray[np.float64], shift: int) -> NDArray[np.float64]:
 
 def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, threshold: float = STEP_THRESHOLD,
                   apex: float = STEP_APEX, sharpness: float = STEP_SHARPNESS) -> NDArray[np.float32]:
-    """Relative albedo made of the sharp steps found along each line (1 left of the first).
-
-    Within one code the pattern repeats every window ``T`` along the line, so where the albedo
-    steps by a factor ``r`` at ``x0`` the log capture minus itself one window earlier,
-    ``g(u) = log I(u) - log I(u - T)``, is ``log r`` on exactly ``[x0, x0 + T)`` and 0 around it,
-    whatever the pattern.  Its mean over the window starting at ``u`` (weighted by the smaller
-    of the two intensities, so the noise of the dark troughs counts little) is a triangle
-    peaking at ``x0``.  A smooth albedo gradient gives a plateau instead, which the second
-    difference at lag ``T`` removes, and a smooth bump a rounded top, which the apex test
-    rejects: a step's triangle has fallen by `apex` of its height `apex` windows from its
-    peak, and must have fallen by at least `sharpness` of it.  Peaks of the second difference
-    beyond `threshold` (log units) that are the largest within a window are the steps; their
-    running sum along the line is the log albedo.  A code change or a depth edge rarely
-    passes all three tests; where one does, the estimate has a false step, which costs what
-    the true step would have.
-    """
+    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring), as it was before the kernel."""
     h, w = img.shape
     floor = np.float32(0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6))
     logi = np.log(np.maximum(img, floor))
