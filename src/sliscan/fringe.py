@@ -15,8 +15,9 @@ borders, where most of its errors are.
 Stages, each its own function:
 
 1. `channel_levels`: each phase carrier's gain (optical roll-off differs per carrier) and
-   offset, from the capture itself by regressing the envelopes on the fringe model at the
-   current phase estimate (a few iterations; the scene's phases need not be uniform).
+   offset, from the capture itself: the envelopes are regressed on the fringe model at each
+   sampled pixel's current phase and light share, until the levels settle (the scene's phases
+   need not cover the circle evenly).
 2. `phasors`: per pixel the fringe's phasor ``sum_n level_n exp(i 2 pi n / N)``, weighted by
    the local DC (brighter pixels are less noisy).
 3. `smooth_phasors`: the phasors summed over a box along both image axes, restricted to runs of
@@ -24,11 +25,15 @@ Stages, each its own function:
    does not reach across depth edges).  Along the carriers the box is one demodulation window
    long: a carrier whose local frequency differs from the window's (perspective, slope) leaks
    into its neighbours with a beat of exactly the carrier spacing, which a box of one spacing
-   period cancels.  Along the phase direction it is an eighth of a fringe period (the
+   period cancels; it is "twiced" (``2 B - B B``), which also cancels the box's bias on a
+   curved surface.  Along the phase direction it is an eighth of a fringe period (the
    modulation keeps 97 % of its depth) and averages the noise.
 4. `unwrap`: the fringe period nearest to the Gray code stripe's centre; pixels where the two
-   disagree by more than `max_disagreement` stripes, or whose fringe modulation is weak, are
-   dropped.
+   disagree by more than `max_disagreement` stripes are unwrapped against their sure
+   neighbours' mean line (`local_reference`) instead, or dropped, and so are pixels whose
+   fringe modulation is weak (`refine`).
+
+Measured on the virtual rig: README, "Sub-stripe depth from one frame".
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ from numpy.typing import NDArray
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
 from sliscan.demodulate import Carriers, Demodulated, along_carriers
-from sliscan.patterns import fringe_line, fringe_phase, phase_shifts, stripe_of_line
+from sliscan.patterns import fringe_line, fringe_phase, phase_shifts
 from sliscan.types import PatternSpec
 
 
