@@ -379,9 +379,8 @@ def _stripe_of_code(spec: PatternSpec) -> NDArray[np.int64]:
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
            min_confidence: float | None = None, min_snr: float | None = None, stripe_borders: bool = True,
-           max_residual: float = 0.6,
-           max_misfit: float = 0.25, zero_code_dc: float = 0.6, neighbour_radius: int = 3,
-           border_reach: int = 10) -> Decoded:
+           max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.6,
+           neighbour_radius: int = 3, border_reach: int = 10) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
     Parameters

@@ -285,6 +285,7 @@ def unwrap(phase: NDArray[np.floating], coarse: NDArray[np.floating], spec: Patt
 
     The fringe period chosen is the one whose line lies nearest to `coarse` (the stripe's
     centre), so the result is right whenever `coarse` is within half a period of the truth.
+    `refine`'s kernels apply the same formula per pixel (`_unwrapped`; tested equal).
 
     >>> spec = PatternSpec(phase_carriers=(160, 192, 224))          # period 96 lines
     >>> unwrap(np.array([np.pi / 2]), np.array([130.0]), spec).round(3).tolist()   # 96 + 24
