@@ -14,11 +14,13 @@ borders, where most of its errors are.
 
 Stages, each its own function:
 
-1. `channel_levels`: each phase carrier's gain (optical roll-off differs per carrier) and
-   offset, from the capture itself: the envelopes are regressed on the fringe model at each
-   sampled pixel's current phase and light share, until the levels settle (the scene's phases
-   need not cover the circle evenly).
-2. `phasors`: per pixel the fringe's phasor ``sum_n level_n exp(i 2 pi n / N)``, weighted by
+1. `channel_levels`: each phase carrier's gain (optical roll-off differs per carrier),
+   offset and crosstalk, from the capture itself: the envelopes are regressed on the fringe
+   model at each sampled pixel's current phase and light share, until the levels settle (the
+   scene's phases need not cover the circle evenly).  The crosstalk is a projector gamma's
+   products of two carriers that land on a phase carrier (`crosstalk`): with the pixel's
+   stripe known they are linear in its fringes and are taken out (`phasors`).
+2. `phasors`: per pixel the fringe's phasor ``sum_n I_n exp(i 2 pi n / N)``, weighted by
    the local DC (brighter pixels are less noisy).
 3. `smooth_phasors`: the phasors summed over a box along both image axes, restricted to runs of
    valid pixels whose stripe changes by at most 1.5 stripes from pixel to pixel (so the box
@@ -32,6 +34,9 @@ Stages, each its own function:
    disagree by more than `max_disagreement` stripes are unwrapped against their sure
    neighbours' mean line (`local_reference`) instead, or dropped, and so are pixels whose
    fringe modulation is weak (`refine`).
+5. Pixels the Gray code left out are unwrapped against the mean line of the kept pixels
+   around them (`neighbour_lines`), if those lie on one surface and the pixel's own phase
+   carriers stand above the noise (`refine`'s `extend`).
 
 Measured on the virtual rig: README, "Sub-stripe depth from one frame".
 """
@@ -47,7 +52,7 @@ from numpy.typing import NDArray
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
 from sliscan.demodulate import Carriers, Demodulated, along_carriers
-from sliscan.patterns import fringe_line, fringe_phase, phase_shifts
+from sliscan.patterns import code_bits, fringe_line, fringe_phase, phase_shifts, stripe_codes, stripe_of_line
 from sliscan.types import PatternSpec
 
 
@@ -59,10 +64,76 @@ class ChannelLevels:
     ----------
     gain, offset : (N,) float64 arrays
         In units of the envelope's ratio to the local DC.
+    crosstalk : (N,) float64 array
+        Weight of the projector's second-order products on each phase carrier (`crosstalk`),
+        relative to its own fringe: ``ratio_n = offset_n + gain_n (I_n + crosstalk_n P_n)``.
+        About ``(gamma - 1) / 2 * b_p / a_p`` for an uncorrected gamma (0.086 for gamma 2.2 and
+        the default pattern; measured 0.082-0.096); 0 for a linear projector.
     """
 
     gain: NDArray[np.float64]
     offset: NDArray[np.float64]
+    crosstalk: NDArray[np.float64]
+
+
+def crosstalk(spec: PatternSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """What a projector's nonlinearity adds to each phase carrier, per stripe: ``(C, c)``.
+
+    A projector whose light is a curved function of its drive (an uncorrected gamma) squares
+    the pattern's sum of carriers a little: every pair of carriers adds a term at their sum
+    and at their difference frequency, in phase with a carrier there (all are cosines of the
+    same projector coordinate, and blur and pixel apertures are symmetric).  With carriers on
+    multiples of one spacing these land exactly on other carriers: on sliscan's phase
+    pattern (spacings 1-4 the bits, 5-7 the fringe) carrier 5 receives bits 1 x 4 and 2 x 3,
+    and fringes 6 x bit 1 and 7 x bit 2.  Relative to carrier n's own fringe ``I_n`` they add
+    ``P_n = sum over pairs of w_a w_b / w_n * s_a s_b`` (``s`` = 0/1 for a bit, ``I_m`` for a
+    fringe, 1 for the pilot; half for a carrier with itself), linear in the fringes once the
+    stripe's bits are known: ``P = C[stripe] @ I + c[stripe]``.  Products of two fringes
+    (not linear) never land on a phase carrier of these layouts and are left out.
+
+    Returns
+    -------
+    C : (S, N, N) float64 array
+    c : (S, N) float64 array
+        For each stripe ``0 .. S - 1`` (its Gray code's bits), N phase carriers.
+    """
+    freqs = np.asarray(spec.all_carriers, dtype=np.float64)
+    weights = np.asarray(spec.all_weights, dtype=np.float64)
+    first, n = spec.bits, len(spec.phase_carriers)
+    phase = np.zeros(freqs.size, bool)
+    phase[first:first + n] = True
+    bits = code_bits(stripe_codes(spec), spec.bits).astype(np.float64)  # (S, bits)
+    fixed = np.ones((bits.shape[0], freqs.size))  # the bits' and the pilot's values per stripe
+    fixed[:, :spec.bits] = bits
+    tol = 1e-6 * freqs.max()
+    big_c, small_c = np.zeros((bits.shape[0], n, n)), np.zeros((bits.shape[0], n))
+    for k in range(n):
+        target = freqs[first + k]
+        for a in range(freqs.size):
+            for b in range(a, freqs.size):
+                share = ((0.5 if a == b else 1.0) * (abs(freqs[a] + freqs[b] - target) < tol)
+                         + (a != b) * (abs(abs(freqs[a] - freqs[b]) - target) < tol))
+                if share == 0 or (phase[a] and phase[b]):
+                    continue
+                coef = share * weights[a] * weights[b] / weights[first + k]
+                if phase[a] or phase[b]:  # a fringe times a bit (or the pilot)
+                    fringe_index, other = (a, b) if phase[a] else (b, a)
+                    big_c[:, k, fringe_index - first] += coef * fixed[:, other]
+                else:
+                    small_c[:, k] += coef * fixed[:, a] * fixed[:, b]
+    return big_c, small_c
+
+
+def _unmixing(levels: ChannelLevels, spec: PatternSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per stripe, the map from a pixel's levels ``(ratio - offset) / gain`` to its fringes:
+    ``I = M[stripe] @ (level - v[stripe])``, inverting ``level = I + k (C I + c)``; one more
+    entry (index S) is the identity, for pixels without a stripe.  ``(S + 1, N, N)``, ``(S + 1, N)``."""
+    big_c, small_c = crosstalk(spec)
+    n = big_c.shape[1]
+    kappa = levels.crosstalk[None, :, None]
+    mix = np.linalg.inv(np.eye(n)[None] + kappa * big_c)
+    return (np.concatenate([mix, np.eye(n)[None]]),
+            np.concatenate([levels.crosstalk[None, :] * small_c, np.zeros((1, n))]))
 
 
 #: Pixels `channel_levels` samples (about).
@@ -75,18 +146,20 @@ def sample_step(mask: NDArray[np.bool_], limit: int) -> int:
 
 
 def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: PatternSpec, *,
-                   limit: int = LEVEL_SAMPLES, tolerance: float = 1e-4, max_iterations: int = 200) -> ChannelLevels:
-    """Gains and offsets of the phase carriers, estimated from the capture.
+                   stripes: NDArray[np.integer] | None = None, limit: int = LEVEL_SAMPLES, tolerance: float = 1e-4,
+                   max_iterations: int = 200) -> ChannelLevels:
+    """Gains, offsets and crosstalk of the phase carriers, estimated from the capture.
 
-    Each pixel's ratios follow ``m (offset_n + gain_n I_n(phi))``: `m`, the pixel's share of
-    projector light in its DC (albedo against ambient light), and the phase are the pixel's;
-    the levels are common to all pixels (in the units of the sampled pixels' ratios: `m` has a
-    mean of 1 over them).  Starting from each ratio's 98th
-    percentile as gain and no offset, the fit alternates until the levels move by less than
-    `tolerance` (relative): every sampled pixel's phase and `m` with the current levels; each
-    carrier's least-squares line ``ratio_n / m = offset_n + gain_n I_n``.  A scene whose
-    phases cover the circle converges in a few tens of rounds, one that shows only part of it
-    (a small object) in up to a few hundred, hence the small sample.
+    Each pixel's ratios follow ``m (offset_n + gain_n (I_n(phi) + crosstalk_n P_n))``: `m`,
+    the pixel's share of projector light in its DC (albedo against ambient light), and the
+    phase are the pixel's; ``P_n`` the projector's products landing on the carrier, from the
+    pixel's stripe and fringes (`crosstalk`); the levels are common to all pixels (in the
+    units of the sampled pixels' ratios: `m` has a mean of 1 over them).  Starting from each
+    ratio's 98th percentile as gain, no offset and no crosstalk, the fit alternates until the
+    levels move by less than `tolerance` (relative): every sampled pixel's phase and `m` with
+    the current levels; each carrier's least-squares fit of ``ratio_n / m`` on ``1, I_n,
+    P_n``.  A scene whose phases cover the circle converges in a few tens of rounds, one that
+    shows only part of it (a small object) in up to a few hundred, hence the small sample.
 
     Parameters
     ----------
@@ -94,33 +167,46 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
         Phase carriers' envelopes over the local DC.
     mask : (H, W) bool array
         Pixels to learn from (decoded, lit), thinned to about `limit` on a regular grid.
+    stripes : (H, W) int array, optional
+        Each pixel's stripe (Gray code); without them the crosstalk is not fitted (0).
     """
     step = sample_step(mask, limit)
     grid = mask[::step, ::step]
     samples = ratios[:, ::step, ::step][:, grid].astype(np.float64)  # (N, M)
     n = samples.shape[0]
     if samples.shape[1] < 10 * n:
-        return ChannelLevels(gain=np.ones(n), offset=np.zeros(n))
+        return ChannelLevels(gain=np.ones(n), offset=np.zeros(n), crosstalk=np.zeros(n))
+    big_c, small_c = crosstalk(spec)
+    if stripes is None:
+        big_c, small_c = np.zeros_like(big_c), np.zeros_like(small_c)
+        stripe = np.zeros(samples.shape[1], np.intp)
+    else:
+        stripe = np.clip(stripes[::step, ::step][grid], 0, big_c.shape[0] - 1).astype(np.intp)
     shifts = phase_shifts(spec)
-    gain, offset = np.maximum(np.percentile(samples, 98, axis=1), 1e-6), np.zeros(n)
+    levels = ChannelLevels(gain=np.maximum(np.percentile(samples, 98, axis=1), 1e-6), offset=np.zeros(n),
+                           crosstalk=np.zeros(n))
     share = np.ones(samples.shape[1])
     for _ in range(max_iterations):
-        c, s = _phasor_parts((samples / share - offset[:, None]) / gain[:, None], shifts)
+        gain, offset, kappa = levels.gain, levels.offset, levels.crosstalk
+        mix, shift = _unmixing(levels, spec)
+        level = (samples / share - offset[:, None]) / gain[:, None]
+        c, s = _phasor_parts(np.einsum("mij,jm->im", mix[stripe], level - shift[stripe].T), shifts)
         fringe = 0.5 * (1 + np.cos(np.arctan2(s, c)[None, :] - shifts[:, None]))  # (N, M)
-        model = offset[:, None] + gain[:, None] * fringe
+        products = np.einsum("mij,jm->im", big_c[stripe], fringe) + small_c[stripe].T  # (N, M)
+        model = offset[:, None] + gain[:, None] * (fringe + kappa[:, None] * products)
         share = np.maximum(np.sum(samples * model, axis=0) / np.maximum(np.sum(model * model, axis=0), 1e-12), 1e-6)
         share /= share.mean()
         scaled = samples / share
-        # least-squares line of each carrier, in closed form
-        f_mean, r_mean = fringe.mean(axis=1), scaled.mean(axis=1)
-        f_var = np.maximum(np.mean(fringe * fringe, axis=1) - f_mean**2, 1e-12)
-        new_gain = np.maximum((np.mean(fringe * scaled, axis=1) - f_mean * r_mean) / f_var, 1e-6)
-        new_offset = r_mean - new_gain * f_mean
-        change = np.max(np.abs(np.concatenate([new_gain - gain, new_offset - offset]))) / np.max(new_gain)
-        gain, offset = new_gain, new_offset
+        fits = [np.linalg.lstsq(np.stack([np.ones_like(f), f, p], axis=1), r, rcond=None)[0]
+                for f, p, r in zip(fringe, products, scaled)]
+        new_offset, new_gain, weighted = (np.array(v) for v in zip(*fits))
+        new_gain = np.maximum(new_gain, 1e-6)
+        levels = ChannelLevels(gain=new_gain, offset=new_offset, crosstalk=weighted / new_gain)
+        change = np.max(np.abs(np.concatenate([new_gain - gain, new_offset - offset,
+                                               weighted - kappa * gain]))) / np.max(new_gain)
         if change < tolerance:
             break
-    return ChannelLevels(gain=gain, offset=offset)
+    return levels
 
 
 def _phasor_parts(levels: NDArray[np.floating], shifts: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
@@ -130,39 +216,52 @@ def _phasor_parts(levels: NDArray[np.floating], shifts: NDArray[np.float64]) -> 
 
 @numba.njit(cache=True, nogil=True)
 def _phasor_rows(amplitude: NDArray[np.float32], first: int, dc: NDArray[np.float32], valid: NDArray[np.bool_],
-                 gain: NDArray[np.float64], offset: NDArray[np.float64], cos_shift: NDArray[np.float64],
+                 stripe: NDArray[np.int16], gain: NDArray[np.float64], offset: NDArray[np.float64],
+                 mix: NDArray[np.float64], shift: NDArray[np.float64], cos_shift: NDArray[np.float64],
                  sin_shift: NDArray[np.float64], rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """`phasors` on the given `rows`: `amplitude` ``(C, H, W)`` with the phase carriers from
-    index `first`; `out` ``(3, H, W)``."""
+    index `first`; `mix`, `shift` from `_unmixing`; `out` ``(3, H, W)``."""
     n = gain.size
+    identity = mix.shape[0] - 1
+    level = np.empty(n)
     for r in rows:
         for x in range(dc.shape[1]):
             if not valid[r, x]:
                 out[0, r, x] = out[1, r, x] = out[2, r, x] = 0.0
                 continue
             d = max(dc[r, x], 1e-6)
+            st = stripe[r, x] if 0 <= stripe[r, x] < identity else identity
+            for k in range(n):
+                level[k] = (amplitude[first + k, r, x] / d - offset[k]) / gain[k] - shift[st, k]
             c = s = t = 0.0
             for k in range(n):
-                level = (amplitude[first + k, r, x] / d - offset[k]) / gain[k]
-                c += level * cos_shift[k]
-                s += level * sin_shift[k]
-                t += level
+                fringe = 0.0
+                for j in range(n):
+                    fringe += mix[st, k, j] * level[j]
+                c += fringe * cos_shift[k]
+                s += fringe * sin_shift[k]
+                t += fringe
             out[0, r, x], out[1, r, x], out[2, r, x] = c * dc[r, x], s * dc[r, x], t * dc[r, x]
 
 
-def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels, spec: PatternSpec) -> NDArray[np.float32]:
+def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels, spec: PatternSpec,
+            stripes: NDArray[np.int16]) -> NDArray[np.float32]:
     """The fringe's phasor at every pixel: ``(3, H, W)`` float32 = (real, imaginary, DC), each
     times the local DC (0 where not `valid`).
 
-    With ``level_n = (ratio_n - offset_n) / gain_n`` = ``m (1 + cos(phi - 2 pi n / N)) / 2``
-    (``ratio_n`` the phase carrier's envelope over the DC), ``sum_n level_n exp(i 2 pi n / N) =
-    m (N / 4) exp(i phi)`` and ``sum_n level_n = m N / 2``, so ``|phasor| / (DC / 2)`` is the
-    fringe's modulation depth (1 for a clean fringe).  A compiled kernel, rows in threads.
+    With ``level_n = (ratio_n - offset_n) / gain_n`` (``ratio_n`` the phase carrier's envelope
+    over the DC) and the projector's products on it taken out with the pixel's stripe
+    (`stripes`, -1: none taken out; `_unmixing`), ``I_n = m (1 + cos(phi - 2 pi n / N)) / 2``:
+    ``sum_n I_n exp(i 2 pi n / N) = m (N / 4) exp(i phi)`` and ``sum_n I_n = m N / 2``, so
+    ``|phasor| / (DC / 2)`` is the fringe's modulation depth (1 for a clean fringe).  A
+    compiled kernel, rows in threads.
     """
     shifts = phase_shifts(spec)
+    mix, shift = _unmixing(levels, spec)
     out = np.empty((3, *demod.dc.shape), dtype=np.float32)
     args = (np.ascontiguousarray(demod.amplitude), spec.bits, np.ascontiguousarray(demod.dc), np.ascontiguousarray(valid),
-            levels.gain.astype(np.float64), levels.offset.astype(np.float64), np.cos(shifts), np.sin(shifts))
+            np.ascontiguousarray(stripes, dtype=np.int16), levels.gain.astype(np.float64),
+            levels.offset.astype(np.float64), mix, shift, np.cos(shifts), np.sin(shifts))
     over_rows(lambda rows: _phasor_rows(*args, rows, out), out.shape[1])
     return out
 
@@ -391,8 +490,8 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     step = sample_step(decoded.valid, LEVEL_SAMPLES)  # the ratios of channel_levels' sample only
     sample = (demod.amplitude[spec.bits:spec.bits + n, ::step, ::step]
               / np.maximum(demod.dc[::step, ::step], np.float32(1e-6)))
-    levels = channel_levels(sample, decoded.valid[::step, ::step], spec)
-    phasor = phasors(demod, decoded.valid, levels, spec)
+    levels = channel_levels(sample, decoded.valid[::step, ::step], spec, stripes=decoded.stripe[::step, ::step])
+    phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe)
     phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
     stripe_lines = spec.phase_lines / spec.stripes
@@ -418,7 +517,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         joins = (~kept & (share >= EXTEND_SHARE) & (spread <= EXTEND_SPREAD * stripe_lines)
                  & frame(snr >= EXTEND_SNR))
         new = frame(joins) & ~decoded.valid  # the others have their phasors already
-        extra = phasors(demod, new, levels, spec)
+        extra = phasors(demod, new, levels, spec, frame(stripe_of_line(mean, spec).astype(np.int16)))
         phasor += np.stack([frame(p) for p in extra]) if spec.orientation != "rows" else extra
         around = np.where(kept, out, np.where(joins, mean, np.float32(np.nan))).astype(np.float32)
         summed = (smooth_phasors(phasor, around, along_carriers=carriers.window, along_phase=along_phase,
