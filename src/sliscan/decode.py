@@ -270,32 +270,48 @@ def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: 
 
 
 @numba.njit(cache=True, nogil=True)
-def _agreeing_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], radius: int, min_share: float,
+def _agreeing_rows(stripe: NDArray[np.integer], valid: NDArray[np.bool_], radius: int, min_share: float,
                    rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
     """`agrees_with_neighbours` for the given rows.
 
-    The box slides along the row with a histogram of the valid stripes inside it
-    (``hist[s + 1]`` counts stripe ``s >= 0``): one column enters and one leaves per pixel,
-    so the cost per pixel is two box heights, not a box area."""
+    Most boxes hold only stripes within one of their pixel's own, so that every valid pixel
+    agrees: the box's smallest and largest valid stripe (a column's over the box's rows,
+    then over the box's columns) tell, and only the other pixels count their box."""
     h, w = stripe.shape
-    hist = np.zeros(max(stripe.max(), 0) + 3, dtype=np.int64)
+    low, high = np.empty(w, np.int64), np.empty(w, np.int64)
+    box_low, box_high = np.empty(w, np.int64), np.empty(w, np.int64)
     for y in rows:
         top, bottom = max(y - radius, 0), min(y + radius + 1, h)
-        hist[:] = 0
-        total = 0
-        for x in range(-radius, w):
-            for column, step in ((x + radius, 1), (x - radius - 1, -1)):  # entering, leaving
-                if 0 <= column < w:
-                    for yy in range(top, bottom):
-                        other = stripe[yy, column]
-                        if valid[yy, column] and other >= 0:
-                            hist[other + 1] += step
-                            total += step
-            if x >= 0:
-                own = stripe[y, x]
-                # stripes own - 1, own, own + 1 (hist[0] would be stripe -1, never counted)
-                agree = (hist[own] if own >= 1 else 0) + hist[own + 1] + hist[own + 2] if own >= -1 else 0
-                out[y, x] = valid[y, x] and agree >= min_share * total
+        low[:], high[:] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+        for yy in range(top, bottom):
+            for x in range(w):
+                s = np.int64(stripe[yy, x])
+                counted = valid[yy, x] & (s >= 0)
+                low[x] = min(low[x], s) if counted else low[x]
+                high[x] = max(high[x], s) if counted else high[x]
+        box_low[:], box_high[:] = low, high
+        for shift in range(1, radius + 1):  # the columns `shift` to the right, then to the left
+            for x in range(w - shift):
+                box_low[x], box_high[x] = min(box_low[x], low[x + shift]), max(box_high[x], high[x + shift])
+            for x in range(shift, w):
+                box_low[x], box_high[x] = min(box_low[x], low[x - shift]), max(box_high[x], high[x - shift])
+        for x in range(w):
+            if not valid[y, x]:
+                out[y, x] = False
+                continue
+            own = np.int64(stripe[y, x])
+            left, right = max(x - radius, 0), min(x + radius + 1, w)
+            if min_share <= 1 and own - 1 <= box_low[x] and box_high[x] <= own + 1:
+                out[y, x] = True  # every counted stripe agrees (or none is counted: 0 >= 0)
+                continue
+            agree = total = 0
+            for yy in range(top, bottom):
+                for xx in range(left, right):
+                    s = np.int64(stripe[yy, xx])
+                    if valid[yy, xx] and s >= 0:
+                        total += 1
+                        agree += abs(s - own) <= 1
+            out[y, x] = agree >= min_share * total
 
 
 def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_], *, radius: int = 3,
@@ -313,7 +329,9 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
     stripe : (H, W) int array
     valid : (H, W) bool array
     """
-    s = np.ascontiguousarray(stripe, dtype=np.int64)
+    s = np.ascontiguousarray(stripe)
+    if s.dtype.kind not in "iu":
+        s = s.astype(np.int64)
     out = np.empty(s.shape, dtype=bool)
     mask = np.ascontiguousarray(valid)
     over_rows(lambda rows: _agreeing_rows(s, mask, radius, float(min_share), rows, out), s.shape[0])
