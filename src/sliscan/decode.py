@@ -184,7 +184,7 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
                  scale_span: NDArray[np.float64], stripe_of_code: NDArray[np.int64], lit: NDArray[np.bool_],
                  residual: NDArray[np.float32], noise: NDArray[np.float32], half_confidence: np.float32,
                  min_snr: np.float32, max_residual: np.float32, stripe_borders: bool, rows: NDArray[np.intp],
-                 levels: NDArray[np.float32], stripe: NDArray[np.int64], confidence: NDArray[np.float32],
+                 levels: NDArray[np.float32], stripe: NDArray[np.int16], confidence: NDArray[np.float32],
                  valid: NDArray[np.bool_]) -> None:
     """Bit levels, Gray decoding and the per-pixel validity tests of `decode`, for the given
     rows (see `decode` for the tests; `noise` of shape (0, 0) when there is none)."""
@@ -339,8 +339,8 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], levels: NDArray[np.float32],
-                 codes: NDArray[np.int64], dy: int, dx: int, rows: NDArray[np.intp], out: NDArray[np.int64]) -> None:
+def _refine_rows(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels: NDArray[np.float32],
+                 codes: NDArray[np.int64], dy: int, dx: int, rows: NDArray[np.intp], out: NDArray[np.integer]) -> None:
     """`refine_borders` for the given rows; the pixels compared are ``(y -+ dy, x -+ dx)``."""
     h, w = stripe.shape
     bits = levels.shape[0]
@@ -366,7 +366,7 @@ def _refine_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], levels: ND
 
 
 def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels: NDArray[np.float32],
-                   spec: PatternSpec, *, reach: int) -> NDArray[np.int64]:
+                   spec: PatternSpec, *, reach: int) -> NDArray[np.integer]:
     """Re-decide the pixels between two neighbouring stripes at their local midpoint.
 
     Along the phase direction a pixel `reach` lines before and one `reach` lines after it
@@ -381,13 +381,36 @@ def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels
     valid : (H, W) bool array
     levels : (K, H, W) float32 array
         Bit levels (`Decoded.levels`).
+
+    Returns
+    -------
+    (H, W) array
+        The stripes, of `stripe`'s integer dtype (int64 for any other).
     """
     dy, dx = (reach, 0) if spec.orientation == "rows" else (0, reach)
-    stripe = np.ascontiguousarray(stripe, dtype=np.int64)
+    stripe = np.ascontiguousarray(stripe)
+    if stripe.dtype.kind not in "iu":
+        stripe = stripe.astype(np.int64)
     out = np.empty_like(stripe)
     mask, bit_levels, codes = np.ascontiguousarray(valid), np.ascontiguousarray(levels), stripe_codes(spec)
     over_rows(lambda rows: _refine_rows(stripe, mask, bit_levels, codes, dy, dx, rows, out), stripe.shape[0])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _output_rows(valid: NDArray[np.bool_], lit: NDArray[np.bool_], centres: NDArray[np.float32], rows: NDArray[np.intp],
+                 stripe: NDArray[np.int16], confidence: NDArray[np.float32], proj_map: NDArray[np.float32]) -> None:
+    """`decode`'s outputs for the given rows, in place: `stripe` -1 where not `valid`,
+    `confidence` 0 where not `lit`, and `proj_map` the stripe's centre line `centres`
+    ``(stripes,)`` (NaN for -1)."""
+    for y in rows:
+        for x in range(valid.shape[1]):
+            if not valid[y, x]:
+                stripe[y, x] = -1
+            s = stripe[y, x]
+            proj_map[y, x] = centres[s] if s >= 0 else np.nan
+            if not lit[y, x]:
+                confidence[y, x] = 0
 
 
 def _stripe_of_code(spec: PatternSpec) -> NDArray[np.int64]:
@@ -449,7 +472,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     lit = _lit(demod, spec, dc, min_modulation, min_snr)
     scale = _Scale.of(demod.amplitude, list(range(bits)), reference, lit)
     levels = np.empty((bits, *dc.shape), dtype=np.float32)
-    stripe = np.empty(dc.shape, dtype=np.int64)
+    stripe = np.empty(dc.shape, dtype=np.int16)
     confidence = np.empty(dc.shape, dtype=np.float32)
     valid = np.empty(dc.shape, dtype=bool)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
@@ -468,8 +491,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         stripe = refine_borders(stripe, valid, levels, spec, reach=border_reach)
     if neighbour_radius:
         valid = agrees_with_neighbours(stripe, valid, radius=neighbour_radius)
-    stripe = np.where(valid, stripe, -1).astype(np.int16)
-    centres = np.append(stripe_center(np.arange(spec.stripes), spec), np.nan).astype(np.float32)
-    proj_map = centres[stripe]  # stripe -1 takes the NaN at the end
-    return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit,
-                   confidence=np.where(lit, confidence, 0).astype(np.float32), levels=levels)
+    centres = stripe_center(np.arange(spec.stripes), spec).astype(np.float32)
+    proj_map = np.empty(dc.shape, dtype=np.float32)
+    over_rows(lambda rows: _output_rows(valid, lit, centres, rows, stripe, confidence, proj_map), dc.shape[0])
+    return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit, confidence=confidence, levels=levels)
