@@ -175,15 +175,18 @@ def _agreement_reference(stripe, valid, radius, min_share=0.5):
     return valid & (agree >= min_share * total)
 
 
-@pytest.mark.parametrize("radius", [1, 3])
-def test_neighbour_agreement_kernel_equals_the_numpy_form(radius):
+@pytest.mark.parametrize("radius, min_share, dtype", [(1, 0.5, np.int64), (3, 0.5, np.int64), (3, 0.5, np.int16),
+                                                      (2, 1.0, np.int16), (2, 1.5, np.int64)])
+def test_neighbour_agreement_kernel_equals_the_numpy_form(radius, min_share, dtype):
+    """Including stripe -1 on valid pixels, and a share over 1 (only boxes without valid stripes pass)."""
     rng = np.random.default_rng(radius)
     stripe = np.cumsum(rng.random((120, 90)) < 0.05, axis=0) % 16
-    stripe = np.where(rng.random(stripe.shape) < 0.05, rng.integers(0, 16, stripe.shape), stripe)
+    stripe = np.where(rng.random(stripe.shape) < 0.05, rng.integers(-1, 16, stripe.shape), stripe).astype(dtype)
     valid = rng.random(stripe.shape) < 0.8
-    kept = agrees_with_neighbours(stripe, valid, radius=radius)
-    np.testing.assert_array_equal(kept, _agreement_reference(stripe, valid, radius))
-    assert 0.3 < kept.mean() < valid.mean()
+    kept = agrees_with_neighbours(stripe, valid, radius=radius, min_share=min_share)
+    np.testing.assert_array_equal(kept, _agreement_reference(stripe, valid, radius, min_share))
+    if min_share == 0.5:
+        assert 0.3 < kept.mean() < valid.mean()
 
 
 def _two_means_by_masks(v, iterations=20):

@@ -1,5 +1,6 @@
 """Speckle removal on the projector map: wrong-code patches go, real surfaces and edges stay."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -41,6 +42,30 @@ def test_invalid_and_nan_pixels_stay_invalid_and_split_regions(rng):
     assert not keep[:, 100].any() and not keep[0, 0]
     assert not keep[:, 101:104].any()          # 600 pixels < 700
     assert keep[:, :100].sum() == 200 * 100 - 1
+
+
+def _remove_speckles_reference(proj, valid, lines, max_jump, size):
+    """The numpy form of `remove_speckles`' quantisation (before the compiled kernel)."""
+    scale = 32000 / (lines + 1)
+    inside = valid & np.isfinite(proj)
+    quantised = np.full(proj.shape, -1, dtype=np.int16)
+    quantised[inside] = np.clip(np.rint((proj[inside] + 1) * scale), 0, 32000)
+    cv2.filterSpeckles(quantised, -1, size, max(1, int(max_jump * scale)))
+    return inside & (quantised != -1)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32])
+def test_speckle_kernel_equals_the_numpy_form(rng, dtype):
+    """Values beyond the map's range (clipped), NaN, invalid pixels; float32 arithmetic on a
+    float32 map, as numpy's, so the same values round the same way."""
+    proj = (rng.random((120, 160)) * 900 - 60).round(1)
+    proj[rng.random(proj.shape) < 0.05] = np.nan
+    proj = (np.nan_to_num(proj, nan=-7) if dtype == np.int32 else proj).astype(dtype)
+    proj = np.repeat(proj, 2, axis=0)  # regions of a few pixels, some kept
+    valid = rng.random(proj.shape) < 0.9
+    keep = remove_speckles(proj, valid, lines=768, max_jump=30, min_region_px=3)
+    np.testing.assert_array_equal(keep, _remove_speckles_reference(proj, valid, 768, 30, 3))
+    assert 0.05 < keep.mean() < 0.95
 
 
 def test_default_region_scales_with_the_image():

@@ -8,6 +8,7 @@ from sliscan.types import Calibration, Device
 from sliscan.evaluate import accuracy, oracle_points, stripe_depth, true_stripes
 from sliscan.patterns import stripe_center
 from sliscan.pipeline import baseline_direction, device_centre, measurable
+from sliscan.reconstruct import MeasurableTest, Triangulator
 from sliscan.sequences import decode_frames, render_frames
 
 
@@ -72,6 +73,29 @@ def test_measurable_kernel_equals_the_numpy_form(small_rig, direction, lens):
                               projector=Device(projector.matrix, projector.size, intrinsics=projector.intrinsics))
         assert (measurable(points, valid, pinhole, direction, min_angle_deg=5.0) != kept).sum() > 20
     assert 0.1 < kept.mean() < 0.8  # both outcomes are exercised
+
+
+@pytest.mark.parametrize("direction, lens", [("rows", False), ("columns", False), ("rows", True), ("columns", True)])
+def test_triangulator_measure_equals_triangulating_then_the_numpy_form(small_rig, direction, lens):
+    """`Triangulator.measure` (one fused kernel) = the points of `Triangulator` where the numpy
+    form of `measurable` keeps them, NaN elsewhere; with lenses on both devices too."""
+    rig = (simulate.virtual_rig(camera_size=(320, 240), projector_size=(1024, 768),
+                                camera_distortion=(-0.1, 0.02, 0.0, 0.0, 0.0),
+                                projector_distortion=(0.25, 0.05, 0.002, -0.002, 0.0)) if lens else small_rig)
+    h, w = rig.calibration.camera.shape
+    lines = 768 if direction == "rows" else 1024
+    rng = np.random.default_rng(6)
+    proj_map = (rng.random((h, w)) * 1.4 - 0.2) * lines  # some beyond the projector's image
+    proj_map[rng.random((h, w)) < 0.05] = np.nan
+    valid = rng.random((h, w)) < 0.9
+    triangulator = Triangulator(rig.calibration, direction)
+    points, measured = triangulator.measure(proj_map, valid, MeasurableTest.of(rig.calibration, direction, 5.0))
+    expected = triangulator(proj_map, valid)
+    kept = _measurable_reference(expected, valid, rig.calibration, direction, 5.0)
+    expected[~kept] = np.nan
+    np.testing.assert_array_equal(measured, kept)
+    np.testing.assert_array_equal(points, expected)
+    assert 500 < kept.sum() < 0.9 * kept.size  # both outcomes (columns: few, on this vertical baseline)
 
 
 def _perfect_result(truth, spec, calibration):

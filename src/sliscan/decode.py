@@ -184,7 +184,7 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
                  scale_span: NDArray[np.float64], stripe_of_code: NDArray[np.int64], lit: NDArray[np.bool_],
                  residual: NDArray[np.float32], noise: NDArray[np.float32], half_confidence: np.float32,
                  min_snr: np.float32, max_residual: np.float32, stripe_borders: bool, rows: NDArray[np.intp],
-                 levels: NDArray[np.float32], stripe: NDArray[np.int64], confidence: NDArray[np.float32],
+                 levels: NDArray[np.float32], stripe: NDArray[np.int16], confidence: NDArray[np.float32],
                  valid: NDArray[np.bool_]) -> None:
     """Bit levels, Gray decoding and the per-pixel validity tests of `decode`, for the given
     rows (see `decode` for the tests; `noise` of shape (0, 0) when there is none)."""
@@ -270,32 +270,48 @@ def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: 
 
 
 @numba.njit(cache=True, nogil=True)
-def _agreeing_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], radius: int, min_share: float,
+def _agreeing_rows(stripe: NDArray[np.integer], valid: NDArray[np.bool_], radius: int, min_share: float,
                    rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
     """`agrees_with_neighbours` for the given rows.
 
-    The box slides along the row with a histogram of the valid stripes inside it
-    (``hist[s + 1]`` counts stripe ``s >= 0``): one column enters and one leaves per pixel,
-    so the cost per pixel is two box heights, not a box area."""
+    Most boxes hold only stripes within one of their pixel's own, so that every valid pixel
+    agrees: the box's smallest and largest valid stripe (a column's over the box's rows,
+    then over the box's columns) tell, and only the other pixels count their box."""
     h, w = stripe.shape
-    hist = np.zeros(max(stripe.max(), 0) + 3, dtype=np.int64)
+    low, high = np.empty(w, np.int64), np.empty(w, np.int64)
+    box_low, box_high = np.empty(w, np.int64), np.empty(w, np.int64)
     for y in rows:
         top, bottom = max(y - radius, 0), min(y + radius + 1, h)
-        hist[:] = 0
-        total = 0
-        for x in range(-radius, w):
-            for column, step in ((x + radius, 1), (x - radius - 1, -1)):  # entering, leaving
-                if 0 <= column < w:
-                    for yy in range(top, bottom):
-                        other = stripe[yy, column]
-                        if valid[yy, column] and other >= 0:
-                            hist[other + 1] += step
-                            total += step
-            if x >= 0:
-                own = stripe[y, x]
-                # stripes own - 1, own, own + 1 (hist[0] would be stripe -1, never counted)
-                agree = (hist[own] if own >= 1 else 0) + hist[own + 1] + hist[own + 2] if own >= -1 else 0
-                out[y, x] = valid[y, x] and agree >= min_share * total
+        low[:], high[:] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+        for yy in range(top, bottom):
+            for x in range(w):
+                s = np.int64(stripe[yy, x])
+                counted = valid[yy, x] & (s >= 0)
+                low[x] = min(low[x], s) if counted else low[x]
+                high[x] = max(high[x], s) if counted else high[x]
+        box_low[:], box_high[:] = low, high
+        for shift in range(1, radius + 1):  # the columns `shift` to the right, then to the left
+            for x in range(w - shift):
+                box_low[x], box_high[x] = min(box_low[x], low[x + shift]), max(box_high[x], high[x + shift])
+            for x in range(shift, w):
+                box_low[x], box_high[x] = min(box_low[x], low[x - shift]), max(box_high[x], high[x - shift])
+        for x in range(w):
+            if not valid[y, x]:
+                out[y, x] = False
+                continue
+            own = np.int64(stripe[y, x])
+            left, right = max(x - radius, 0), min(x + radius + 1, w)
+            if min_share <= 1 and own - 1 <= box_low[x] and box_high[x] <= own + 1:
+                out[y, x] = True  # every counted stripe agrees (or none is counted: 0 >= 0)
+                continue
+            agree = total = 0
+            for yy in range(top, bottom):
+                for xx in range(left, right):
+                    s = np.int64(stripe[yy, xx])
+                    if valid[yy, xx] and s >= 0:
+                        total += 1
+                        agree += abs(s - own) <= 1
+            out[y, x] = agree >= min_share * total
 
 
 def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_], *, radius: int = 3,
@@ -313,7 +329,9 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
     stripe : (H, W) int array
     valid : (H, W) bool array
     """
-    s = np.ascontiguousarray(stripe, dtype=np.int64)
+    s = np.ascontiguousarray(stripe)
+    if s.dtype.kind not in "iu":
+        s = s.astype(np.int64)
     out = np.empty(s.shape, dtype=bool)
     mask = np.ascontiguousarray(valid)
     over_rows(lambda rows: _agreeing_rows(s, mask, radius, float(min_share), rows, out), s.shape[0])
@@ -321,8 +339,8 @@ def agrees_with_neighbours(stripe: NDArray[np.integer], valid: NDArray[np.bool_]
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], levels: NDArray[np.float32],
-                 codes: NDArray[np.int64], dy: int, dx: int, rows: NDArray[np.intp], out: NDArray[np.int64]) -> None:
+def _refine_rows(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels: NDArray[np.float32],
+                 codes: NDArray[np.int64], dy: int, dx: int, rows: NDArray[np.intp], out: NDArray[np.integer]) -> None:
     """`refine_borders` for the given rows; the pixels compared are ``(y -+ dy, x -+ dx)``."""
     h, w = stripe.shape
     bits = levels.shape[0]
@@ -348,7 +366,7 @@ def _refine_rows(stripe: NDArray[np.int64], valid: NDArray[np.bool_], levels: ND
 
 
 def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels: NDArray[np.float32],
-                   spec: PatternSpec, *, reach: int) -> NDArray[np.int64]:
+                   spec: PatternSpec, *, reach: int) -> NDArray[np.integer]:
     """Re-decide the pixels between two neighbouring stripes at their local midpoint.
 
     Along the phase direction a pixel `reach` lines before and one `reach` lines after it
@@ -363,13 +381,36 @@ def refine_borders(stripe: NDArray[np.integer], valid: NDArray[np.bool_], levels
     valid : (H, W) bool array
     levels : (K, H, W) float32 array
         Bit levels (`Decoded.levels`).
+
+    Returns
+    -------
+    (H, W) array
+        The stripes, of `stripe`'s integer dtype (int64 for any other).
     """
     dy, dx = (reach, 0) if spec.orientation == "rows" else (0, reach)
-    stripe = np.ascontiguousarray(stripe, dtype=np.int64)
+    stripe = np.ascontiguousarray(stripe)
+    if stripe.dtype.kind not in "iu":
+        stripe = stripe.astype(np.int64)
     out = np.empty_like(stripe)
     mask, bit_levels, codes = np.ascontiguousarray(valid), np.ascontiguousarray(levels), stripe_codes(spec)
     over_rows(lambda rows: _refine_rows(stripe, mask, bit_levels, codes, dy, dx, rows, out), stripe.shape[0])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _output_rows(valid: NDArray[np.bool_], lit: NDArray[np.bool_], centres: NDArray[np.float32], rows: NDArray[np.intp],
+                 stripe: NDArray[np.int16], confidence: NDArray[np.float32], proj_map: NDArray[np.float32]) -> None:
+    """`decode`'s outputs for the given rows, in place: `stripe` -1 where not `valid`,
+    `confidence` 0 where not `lit`, and `proj_map` the stripe's centre line `centres`
+    ``(stripes,)`` (NaN for -1)."""
+    for y in rows:
+        for x in range(valid.shape[1]):
+            if not valid[y, x]:
+                stripe[y, x] = -1
+            s = stripe[y, x]
+            proj_map[y, x] = centres[s] if s >= 0 else np.nan
+            if not lit[y, x]:
+                confidence[y, x] = 0
 
 
 def _stripe_of_code(spec: PatternSpec) -> NDArray[np.int64]:
@@ -431,7 +472,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     lit = _lit(demod, spec, dc, min_modulation, min_snr)
     scale = _Scale.of(demod.amplitude, list(range(bits)), reference, lit)
     levels = np.empty((bits, *dc.shape), dtype=np.float32)
-    stripe = np.empty(dc.shape, dtype=np.int64)
+    stripe = np.empty(dc.shape, dtype=np.int16)
     confidence = np.empty(dc.shape, dtype=np.float32)
     valid = np.empty(dc.shape, dtype=bool)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
@@ -450,8 +491,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         stripe = refine_borders(stripe, valid, levels, spec, reach=border_reach)
     if neighbour_radius:
         valid = agrees_with_neighbours(stripe, valid, radius=neighbour_radius)
-    stripe = np.where(valid, stripe, -1).astype(np.int16)
-    centres = np.append(stripe_center(np.arange(spec.stripes), spec), np.nan).astype(np.float32)
-    proj_map = centres[stripe]  # stripe -1 takes the NaN at the end
-    return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit,
-                   confidence=np.where(lit, confidence, 0).astype(np.float32), levels=levels)
+    centres = stripe_center(np.arange(spec.stripes), spec).astype(np.float32)
+    proj_map = np.empty(dc.shape, dtype=np.float32)
+    over_rows(lambda rows: _output_rows(valid, lit, centres, rows, stripe, confidence, proj_map), dc.shape[0])
+    return Decoded(stripe=stripe, proj_map=proj_map, valid=valid, lit=lit, confidence=confidence, levels=levels)

@@ -71,6 +71,21 @@ def _map_and_mask(proj_map: ArrayLike, valid: ArrayLike) -> tuple[NDArray, NDArr
     return proj, mask
 
 
+@numba.njit(cache=True, nogil=True)
+def _quantise_rows(proj: NDArray, valid: NDArray[np.bool_], unit_scale: NDArray[np.floating], rows: NDArray[np.intp],
+                   out: NDArray[np.int16]) -> None:
+    """`remove_speckles`' int16 map for the given rows: ``(proj + 1) scale`` rounded (half to
+    even) and clipped to ``[0, _INT16_TOP]`` where `valid` and `proj` is finite, else `_EMPTY`;
+    `unit_scale` holds 1 and the scale in the dtype the arithmetic runs in (numpy's for `proj`)."""
+    for y in rows:
+        for x in range(proj.shape[1]):
+            p = proj[y, x]
+            if valid[y, x] and np.isfinite(p):
+                out[y, x] = np.int16(min(max(np.rint((p + unit_scale[0]) * unit_scale[1]), 0), _INT16_TOP))
+            else:
+                out[y, x] = _EMPTY
+
+
 def remove_speckles(proj_map: ArrayLike, valid: ArrayLike, *, lines: int, max_jump: float,
                     min_region_px: int | None = None) -> NDArray[np.bool_]:
     """Valid mask without the small regions that jump away from their neighbours.
@@ -108,11 +123,12 @@ def remove_speckles(proj_map: ArrayLike, valid: ArrayLike, *, lines: int, max_ju
         raise InputError(f"lines and max_jump must be positive, got {lines} and {max_jump}")
     size = default_min_region(proj.shape) if min_region_px is None else int(min_region_px)
     scale = _INT16_TOP / (lines + 1)
-    inside = mask & np.isfinite(proj)
-    quantised = np.full(proj.shape, _EMPTY, dtype=np.int16)
-    quantised[inside] = np.clip(np.rint((proj[inside] + 1) * scale), 0, _INT16_TOP)
+    quantised = np.empty(proj.shape, dtype=np.int16)
+    values, inside = np.ascontiguousarray(proj), np.ascontiguousarray(mask)
+    unit_scale = np.array([1, scale], dtype=np.float32 if proj.dtype == np.float32 else np.float64)
+    over_rows(lambda rows: _quantise_rows(values, inside, unit_scale, rows, quantised), proj.shape[0])
     cv2.filterSpeckles(quantised, _EMPTY, size, max(1, int(max_jump * scale)))
-    return inside & (quantised != _EMPTY)
+    return quantised != _EMPTY
 
 
 @numba.njit(cache=True, nogil=True)

@@ -19,13 +19,11 @@ from numpy.typing import ArrayLike, NDArray
 from sliscan import fringe
 from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
-from sliscan.lens import _model as lens_model
-from sliscan.lens import has_distortion
 from sliscan.decode import Decoded, decode
 from sliscan.demodulate import Carriers, Demodulated, demodulate
 from sliscan.outliers import default_max_jump, remove_narrow_runs, remove_speckles
 from sliscan.pmp import ProjectorMap
-from sliscan.reconstruct import Triangulator
+from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
 from sliscan.sequences import decode_frames
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
 
@@ -36,50 +34,14 @@ def texture_from_dc(dc: NDArray[np.floating]) -> NDArray[np.float32]:
     return np.clip(dc / max(top, 1e-6), 0, 1).astype(np.float32)
 
 
-def device_centre(matrix: NDArray[np.floating]) -> NDArray[np.float64]:
-    """Optical centre (mm) of a 3x4 projection matrix: its right null vector."""
-    _, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
-    return vt[-1, :3] / vt[-1, 3]
-
-
 @numba.njit(cache=True, nogil=True)
-def _measurable_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], depth: NDArray[np.float64],
-                     projector: NDArray[np.float64], lens: NDArray[np.float64], across: int, low: float, high: float,
-                     centres: NDArray[np.float64], min_angle_deg: float, rows: NDArray[np.intp],
+def _measurable_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], test: TestArgs, rows: NDArray[np.intp],
                      out: NDArray[np.bool_]) -> None:
-    """`measurable` for the given rows: ``depth`` holds each device's depth row (2, 4),
-    ``centres`` the camera's and the projector's centre (2, 3), ``lens`` the projector's
-    intrinsics and distortion as ``fx, s, cx, fy, cy, k1, k2, p1, p2, k3`` (empty: none)."""
+    """`measurable` for the given rows: `valid` and `is_measurable` with `test` (`MeasurableTest.args`)."""
     for y in rows:
         for x in range(points.shape[1]):
-            ok = valid[y, x]
-            p = points[y, x]
-            if ok:
-                ok = np.isfinite(p[0]) and np.isfinite(p[1]) and np.isfinite(p[2])
-            for device in range(2):
-                if ok:
-                    ok = depth[device, 0] * p[0] + depth[device, 1] * p[1] + depth[device, 2] * p[2] + depth[device, 3] > 0
-            if ok:
-                m = projector
-                hw = m[2, 0] * p[0] + m[2, 1] * p[1] + m[2, 2] * p[2] + m[2, 3]
-                xp = (m[0, 0] * p[0] + m[0, 1] * p[1] + m[0, 2] * p[2] + m[0, 3]) / hw
-                yp = (m[1, 0] * p[0] + m[1, 1] * p[1] + m[1, 2] * p[2] + m[1, 3]) / hw
-                if lens.size:  # the pixel the projector's lens sends that ray through
-                    fx, skew, cx, fy, cy = lens[0], lens[1], lens[2], lens[3], lens[4]
-                    v = (yp - cy) / fy
-                    u = (xp - cx - skew * v) / fx
-                    ud, vd, _, _, _ = lens_model(u, v, lens[5:])
-                    xp, yp = fx * ud + skew * vd + cx, fy * vd + cy
-                coordinate = xp if across == 0 else yp
-                ok = low < coordinate < high
-            if ok:
-                ab = aa = bb = 0.0
-                for j in range(3):
-                    a, b = p[j] - centres[0, j], p[j] - centres[1, j]
-                    ab, aa, bb = ab + a * b, aa + a * a, bb + b * b
-                cos = min(max(ab / (np.sqrt(aa) * np.sqrt(bb)), -1.0), 1.0)
-                ok = np.degrees(np.arccos(cos)) >= min_angle_deg
-            out[y, x] = ok
+            out[y, x] = valid[y, x] and is_measurable(np.float64(points[y, x, 0]), np.float64(points[y, x, 1]),
+                                                      np.float64(points[y, x, 2]), test)
 
 
 def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibration: Calibration, direction: str, *,
@@ -94,7 +56,7 @@ def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibratio
     plane outside the projector's image; and depth precision falls with the angle between the
     rays, so a wrong stripe on a ray almost parallel to its plane lands metres away too.  The
     projector's image counts with a margin of 2 % of its lines.  One compiled pass, rows in
-    threads.
+    threads (`sliscan.reconstruct.Triangulator.measure` runs the same test as it triangulates).
 
     Parameters
     ----------
@@ -109,23 +71,35 @@ def measurable(points: NDArray[np.float32], valid: NDArray[np.bool_], calibratio
     -------
     (H, W) bool array
     """
-    depth = []
-    for device in (calibration.camera, calibration.projector):
-        m = device.matrix / np.linalg.norm(device.matrix[2, :3])
-        depth.append(np.sign(np.linalg.det(device.matrix[:, :3])) * m[2])
-    w, h = calibration.projector.size
-    across, lines = (0, w) if direction == "rows" else (1, h)
-    margin = 0.02 * lines
-    centres = np.array([device_centre(calibration.camera.matrix), device_centre(calibration.projector.matrix)])
-    projector = calibration.projector
-    lens = (np.concatenate([projector.intrinsics[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]], projector.distortion])
-            if has_distortion(projector.distortion) else np.empty(0))
+    test = MeasurableTest.of(calibration, direction, min_angle_deg).args
     out = np.empty(valid.shape, dtype=bool)
-    pts = np.ascontiguousarray(points, dtype=np.float32)
-    mask, depths, matrix = np.ascontiguousarray(valid), np.array(depth), np.ascontiguousarray(projector.matrix)
-    over_rows(lambda rows: _measurable_rows(pts, mask, depths, matrix, lens, across, -0.5 - margin, lines - 0.5 + margin,
-                                            centres, float(min_angle_deg), rows, out), valid.shape[0])
+    pts, mask = np.ascontiguousarray(points, dtype=np.float32), np.ascontiguousarray(valid)
+    over_rows(lambda rows: _measurable_rows(pts, mask, test, rows, out), valid.shape[0])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _finish_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], proj_map: NDArray[np.floating],
+                 index: NDArray[np.integer], rows: NDArray[np.intp], proj_out: NDArray[np.float32],
+                 index_out: NDArray[np.int16]) -> None:
+    """`_finish` for the given rows."""
+    for y in rows:
+        for x in range(valid.shape[1]):
+            if valid[y, x]:
+                proj_out[y, x], index_out[y, x] = np.float32(proj_map[y, x]), np.int16(index[y, x])
+            else:
+                points[y, x, :] = np.nan
+                proj_out[y, x], index_out[y, x] = np.nan, -1
+
+
+def _finish(points: NDArray[np.float32], valid: NDArray[np.bool_], proj_map: NDArray[np.floating],
+            index: NDArray[np.integer]) -> tuple[NDArray[np.float32], NDArray[np.int16]]:
+    """A scan's outputs, restricted to `valid` ``(H, W)``: sets `points` ``(H, W, 3)`` to NaN
+    outside it, and returns `proj_map` ``(H, W)`` as float32 (NaN outside) and the stripe or
+    fringe `index` ``(H, W)`` as int16 (-1 outside)."""
+    proj_out, index_out = np.empty(valid.shape, np.float32), np.empty(valid.shape, np.int16)
+    over_rows(lambda rows: _finish_rows(points, valid, proj_map, index, rows, proj_out, index_out), valid.shape[0])
+    return proj_out, index_out
 
 
 def baseline_direction(calibration: Calibration) -> str:
@@ -226,6 +200,7 @@ class Scanner:
     remove_narrow_runs: bool = True
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
+    _tests: dict[tuple[str, float], MeasurableTest] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.method not in ("window", "bandpass"):
@@ -283,14 +258,12 @@ class Scanner:
         decoded = fringe.refine(decode(demod, self.spec, **self.decode_options), demod, carriers, self.spec,
                                 **self.fringe_options)
         t2 = time.perf_counter()
-        points = self.triangulator(self.spec.orientation)(decoded.proj_map, decoded.valid)
-        valid = self._measurable(points, decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
+        points, valid = self._measured(decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
+        proj_map, stripe = _finish(points, valid, decoded.proj_map, decoded.stripe)
         t3 = time.perf_counter()
         timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
-        result = ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc),
-                            proj_map=np.where(valid, decoded.proj_map, np.nan).astype(np.float32),
-                            stripe=np.where(valid, decoded.stripe, -1).astype(np.int16),
-                            confidence=decoded.confidence, timings=timings)
+        result = ScanResult(points=points, valid=valid, texture=texture_from_dc(demod.dc), proj_map=proj_map,
+                            stripe=stripe, confidence=decoded.confidence, timings=timings)
         return result, ScanStages(self.spec.orientation, demodulated=demod, carriers=carriers, decoded=decoded)
 
     def triangulator(self, orientation: str) -> Triangulator:
@@ -299,16 +272,27 @@ class Scanner:
             self._triangulators[orientation] = Triangulator(self.calibration, orientation)
         return self._triangulators[orientation]
 
-    def _measurable(self, points: NDArray[np.float32], proj_map: NDArray[np.float32], valid: NDArray[np.bool_],
-                    direction: str, window: int | None = None) -> NDArray[np.bool_]:
-        """`valid` less the points that are not measurements (`measurable`: outside the
-        projector's light, seen at under `min_angle_deg`) or wrong codes: with
-        `remove_narrow_runs`, runs narrower than the demodulation `window` (camera pixels;
-        composite kinds) across a depth edge; with `remove_speckles`, small regions that jump
-        away from their neighbours.  Sets the dropped points to NaN.
+    def measurable_test(self, direction: str) -> MeasurableTest:
+        """The rig's `MeasurableTest` for one coded direction and `min_angle_deg` (`measurable`),
+        built on first use and kept."""
+        key = direction, self.min_angle_deg
+        if key not in self._tests:
+            self._tests[key] = MeasurableTest.of(self.calibration, direction, self.min_angle_deg)
+        return self._tests[key]
 
-        `proj_map` holds the projector coordinate along `direction` ("rows" or "columns")."""
-        valid = measurable(points, valid, self.calibration, direction, min_angle_deg=self.min_angle_deg)
+    def _measured(self, proj_map: NDArray[np.floating], valid: NDArray[np.bool_], direction: str,
+                  window: int | None = None, other: NDArray[np.floating] | None = None,
+                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """World points ``(H, W, 3)`` float32 of `proj_map` (the projector coordinate along
+        `direction`, "rows" or "columns"; `other`: the other one, if decoded) and the mask of
+        the ones kept, NaN but there: `valid` less the points that are not measurements
+        (`measurable`: outside the projector's light, seen at under `min_angle_deg`) or wrong
+        codes: with `remove_narrow_runs`, runs narrower than the demodulation `window` (camera
+        pixels; composite kinds) across a depth edge; with `remove_speckles`, small regions
+        that jump away from their neighbours.  The points the filters drop are set to NaN by
+        `_finish`."""
+        points, valid = self.triangulator(direction).measure(proj_map, valid, self.measurable_test(direction),
+                                                             other=other)
         max_jump = default_max_jump(self.spec, direction)
 
         def despeckle(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -323,8 +307,7 @@ class Scanner:
             narrowed = remove_narrow_runs(proj_map, valid, max_jump=max_jump, window=window,
                                           axis=1 if direction == "rows" else 0)
             valid = despeckle(narrowed) if (narrowed != valid).any() else valid
-        points[~valid] = np.nan
-        return valid
+        return points, valid
 
     def _scan_sequence(self, frames: ArrayLike) -> tuple[ScanResult, ScanStages]:
         """`scan_stages` of a multi-frame capture: decode every coded direction, triangulate one."""
@@ -335,13 +318,11 @@ class Scanner:
         # Orientation "both": the other coordinate lets a distorted projector be undistorted exactly.
         other = next((m.coord for d, m in maps.items() if d != direction), None)
         t1 = time.perf_counter()
-        points = self.triangulator(direction)(decoded.coord, decoded.valid, other=other)
-        valid = self._measurable(points, decoded.coord, decoded.valid, direction)
+        points, valid = self._measured(decoded.coord, decoded.valid, direction, other=other)
+        proj_map, stripe = _finish(points, valid, decoded.coord, decoded.index)
         t2 = time.perf_counter()
         result = ScanResult(points=points, valid=valid, texture=texture_from_dc(decoded.brightness),
-                            proj_map=np.where(valid, decoded.coord, np.nan).astype(np.float32),
-                            stripe=np.where(valid, decoded.index, -1).astype(np.int16),
-                            confidence=decoded.confidence,
+                            proj_map=proj_map, stripe=stripe, confidence=decoded.confidence,
                             timings={"decode": t1 - t0, "triangulate": t2 - t1, "total": t2 - t0})
         return result, ScanStages(direction, maps=maps)
 

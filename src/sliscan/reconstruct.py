@@ -14,6 +14,8 @@ solved for every pixel at once with the adjugate (Cramer's rule) in float64.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from sliscan import lens
 from sliscan._validate import InputError
 from sliscan._threads import default_workers, over_rows
+from sliscan.lens import _model as _lens_model
 from sliscan.lens import has_distortion
 from sliscan.types import ORIENTATIONS, Calibration, Device
 
@@ -142,40 +145,156 @@ def _check_proj_map(name: str, value: ArrayLike, shape: tuple[int, int]) -> NDAr
     return arr
 
 
+def device_centre(matrix: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Optical centre (mm) of a 3x4 projection matrix: its right null vector."""
+    _, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    return vt[-1, :3] / vt[-1, 3]
+
+
+#: `MeasurableTest.args`: ``(depth (2, 4), projector (3, 4), lens (10,) or (0,), across, low,
+#: high, centres (2, 3), max_cos)``, all float64 but `across` (int).
+TestArgs = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int, float, float,
+                 NDArray[np.float64], float]
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurableTest:
+    """The per-point test of `sliscan.pipeline.measurable` for one rig and coded direction,
+    prepared once (`of`) and applied by compiled kernels (`is_measurable`).
+
+    Attributes
+    ----------
+    depth : (2, 4) float64 array
+        The camera's and the projector's depth rows (matrix row 2 scaled to a unit normal,
+        signed so that points in front are positive): ``depth . (X, Y, Z, 1) > 0``.
+    projector : (3, 4) float64 array
+        The projector's matrix.
+    lens : (10,) or (0,) float64 array
+        The projector's ``fx, s, cx, fy, cy, k1, k2, p1, p2, k3``; empty without distortion.
+    across : int
+        The projector coordinate the stripes do not code: 0 (x, coding rows) or 1 (y).
+    low, high : float
+        Its open range (projector pixels, the image plus a margin of 2 % of its lines).
+    centres : (2, 3) float64 array
+        The camera's and the projector's centre (mm).
+    max_cos : float
+        Largest cosine of the angle between the camera and the projector ray: the cosine of
+        the smallest angle (``inf`` for none, ``-inf`` beyond 180 degrees).
+    """
+
+    depth: NDArray[np.float64]
+    projector: NDArray[np.float64]
+    lens: NDArray[np.float64]
+    across: int
+    low: float
+    high: float
+    centres: NDArray[np.float64]
+    max_cos: float
+
+    @classmethod
+    def of(cls, calibration: Calibration, direction: str, min_angle_deg: float) -> MeasurableTest:
+        """The test of `sliscan.pipeline.measurable` for `direction` (``"rows"`` or
+        ``"columns"``, the coded projector coordinate) and `min_angle_deg` (degrees)."""
+        depth = []
+        for device in (calibration.camera, calibration.projector):
+            m = device.matrix / np.linalg.norm(device.matrix[2, :3])
+            depth.append(np.sign(np.linalg.det(device.matrix[:, :3])) * m[2])
+        w, h = calibration.projector.size
+        across, lines = (0, w) if direction == "rows" else (1, h)
+        margin = 0.02 * lines
+        projector = calibration.projector
+        lens = (np.concatenate([projector.intrinsics[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]], projector.distortion])
+                if has_distortion(projector.distortion) else np.empty(0))
+        angle = float(min_angle_deg)
+        max_cos = np.inf if angle <= 0 else -np.inf if angle > 180 else float(np.cos(np.radians(angle)))
+        return cls(depth=np.array(depth), projector=np.ascontiguousarray(projector.matrix, dtype=np.float64),
+                   lens=lens.astype(np.float64), across=across, low=-0.5 - margin, high=lines - 0.5 + margin,
+                   centres=np.array([device_centre(calibration.camera.matrix),
+                                     device_centre(calibration.projector.matrix)]), max_cos=max_cos)
+
+    @property
+    def args(self) -> TestArgs:
+        """The fields as one tuple, for `is_measurable`."""
+        return (self.depth, self.projector, self.lens, self.across, self.low, self.high, self.centres, self.max_cos)
+
+
+@numba.njit(cache=True, inline="always")
+def is_measurable(x: float, y: float, z: float, test: TestArgs) -> bool:
+    """Whether world point ``(x, y, z)`` (mm) passes `test` (`MeasurableTest.args`): finite, in
+    front of both devices, inside the projector's image across the coded direction (through
+    its lens, if any), and seen by rays meeting at the smallest angle or more."""
+    depth, m, lens, across, low, high, centres, max_cos = test
+    if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+        return False
+    for device in range(2):
+        if not depth[device, 0] * x + depth[device, 1] * y + depth[device, 2] * z + depth[device, 3] > 0:
+            return False
+    hw = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+    if lens.size:  # the pixel the projector's lens sends that ray through
+        xp = (m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]) / hw
+        yp = (m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]) / hw
+        fx, skew, cx, fy, cy = lens[0], lens[1], lens[2], lens[3], lens[4]
+        v = (yp - cy) / fy
+        u = (xp - cx - skew * v) / fx
+        ud, vd, _, _, _ = _lens_model(u, v, lens[5:])
+        coordinate = fx * ud + skew * vd + cx if across == 0 else fy * vd + cy
+    else:
+        coordinate = (m[across, 0] * x + m[across, 1] * y + m[across, 2] * z + m[across, 3]) / hw
+    if not low < coordinate < high:
+        return False
+    ab = aa = bb = 0.0
+    for j, p in enumerate((x, y, z)):
+        a, b = p - centres[0, j], p - centres[1, j]
+        ab, aa, bb = ab + a * b, aa + a * a, bb + b * b
+    return ab / (np.sqrt(aa) * np.sqrt(bb)) <= max_cos
+
+
 @numba.njit(cache=True, nogil=True)
-def _evaluate_rows(coef: NDArray[np.float64], affine: NDArray[np.float64], camera: NDArray[np.float64],
+def _evaluate_rows(coef: NDArray[np.float64], affine: NDArray[np.float64], norm_c1: NDArray[np.float64],
                    norm_c2: NDArray[np.float64], centre: float, proj_map: NDArray, mask: NDArray[np.bool_],
-                   quad: NDArray[np.float64], rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+                   quad: NDArray[np.float64], test: TestArgs | None, rows: NDArray[np.intp], out: NDArray[np.float32],
+                   measured: NDArray[np.bool_] | None) -> None:
     """``out[y, x] = (a + b q) / (c + d q)``, ``q = p - centre``, for the given rows (see
-    `Triangulator`), NaN where `mask` is false or the system is ill-posed: ``|c + d p| <=
-    MIN_PLANE_SINE |c3(p)|`` with ``|c3(p)|**2 = quad[0] + quad[1] p + quad[2] p**2``.
+    `Triangulator`), NaN where `mask` is false, ``p`` is NaN or the system is ill-posed:
+    ``|c + d p| <= MIN_PLANE_SINE |c3(p)|`` with ``|c3(p)|**2 = quad[0] + quad[1] p + quad[2] p**2``.
+    With a `test` (`MeasurableTest.args`) the points that fail it (`is_measurable`, on the
+    float32 point) are NaN too, and `measured` ``(H, W)`` says which points are left.
 
     The pixel's eight coefficients come from `coef` ``(H, W, 8)`` when it has rows, else from
-    the row's `affine` ``(H, 2, 8)`` terms ``A + B x`` divided by ``|c1(x)| |c2|``, with ``c1(x) =
-    camera[0] - x camera[1]`` (camera rows 0 and 2, ``(2, 3)``) and ``|c2|`` = `norm_c2` ``(H,)``."""
-    k = np.empty(8)
+    the row's `affine` ``(H, 2, 8)`` terms ``A + B x`` divided by ``|c1(x)| |c2|``, `norm_c1`
+    ``(W,)`` and `norm_c2` ``(H,)``."""
     tabled = coef.shape[0] > 0
     for y in rows:
         for x in range(proj_map.shape[1]):
-            if not mask[y, x]:
-                out[y, x, :] = np.nan
-                continue
-            if tabled:
-                k[:] = coef[y, x]
-            else:
-                c1 = 0.0
-                for j in range(3):
-                    c1 += (camera[0, j] - x * camera[1, j]) ** 2
-                scale = 1.0 / (np.sqrt(c1) * norm_c2[y])
-                for j in range(8):
-                    k[j] = (affine[y, 0, j] + affine[y, 1, j] * x) * scale
             p = np.float64(proj_map[y, x])
-            den = k[6] + k[7] * (p - centre)
-            if abs(den) <= MIN_PLANE_SINE * np.sqrt(quad[0] + quad[1] * p + quad[2] * p * p):
-                out[y, x, :] = np.nan
-                continue
-            for j in range(3):
-                out[y, x, j] = (k[j] + k[3 + j] * (p - centre)) / den
+            ok = mask[y, x] and np.isfinite(p)
+            if ok:
+                scale = 1.0 if tabled else 1.0 / (norm_c1[x] * norm_c2[y])
+                q = p - centre
+                den = _coefficient(coef, affine, scale, y, x, 6) + _coefficient(coef, affine, scale, y, x, 7) * q
+                ok = not abs(den) <= MIN_PLANE_SINE * np.sqrt(quad[0] + quad[1] * p + quad[2] * p * p)
+            if ok:
+                px = np.float32((_coefficient(coef, affine, scale, y, x, 0)
+                                 + _coefficient(coef, affine, scale, y, x, 3) * q) / den)
+                py = np.float32((_coefficient(coef, affine, scale, y, x, 1)
+                                 + _coefficient(coef, affine, scale, y, x, 4) * q) / den)
+                pz = np.float32((_coefficient(coef, affine, scale, y, x, 2)
+                                 + _coefficient(coef, affine, scale, y, x, 5) * q) / den)
+                if test is not None:
+                    ok = is_measurable(np.float64(px), np.float64(py), np.float64(pz), test)
+            if ok:
+                out[y, x, 0], out[y, x, 1], out[y, x, 2] = px, py, pz
+            else:
+                out[y, x, 0] = out[y, x, 1] = out[y, x, 2] = np.nan
+            if measured is not None:
+                measured[y, x] = ok
+
+
+@numba.njit(cache=True, inline="always")
+def _coefficient(coef: NDArray[np.float64], affine: NDArray[np.float64], scale: float, y: int, x: int, j: int) -> float:
+    """Coefficient `j` of pixel ``(y, x)`` (`_evaluate_rows`): tabled in `coef`, or the row's
+    affine terms of `affine` times `scale`."""
+    return coef[y, x, j] if coef.shape[0] > 0 else (affine[y, 0, j] + affine[y, 1, j] * x) * scale
 
 
 class Triangulator:
@@ -192,8 +311,8 @@ class Triangulator:
     ill-conditioning test of `_solve` (`MIN_PLANE_SINE`) reads ``|c + d p| > MIN_PLANE_SINE
     |u - p v|``) and re-expanded about the projector's middle line.  Along a row of a pinhole
     camera the unscaled coefficients are affine in ``x`` (``c1`` and ``d1`` are, the rest is
-    fixed), so a row needs only ``2 x 8`` numbers and the kernel forms each pixel's from them and
-    ``|c1(x)|``; with camera distortion the grid is undistorted once, here, and every pixel's
+    fixed), so a row needs only ``2 x 8`` numbers and the kernel forms each pixel's from them,
+    ``|c1(x)|`` (one a column) and ``|c2|`` (one a row); with camera distortion the grid is undistorted once, here, and every pixel's
     coefficients are kept (``(H, W, 8)``, 64 bytes a pixel).  All float64 (float32 coefficients
     lose up to 0.02 mm where the projector coordinate is ill-conditioned, as for columns on a
     vertical baseline); the points agree with `_solve`'s to float32 rounding.  With projector distortion each pixel's epipolar line in the projector is found
@@ -224,7 +343,6 @@ class Triangulator:
         self._quad = np.array([u @ u, -2 * (u @ v), v @ v])
         self._centre = (calibration.projector.size[1 - k] - 1) / 2
         h, w = self.shape
-        self._camera = np.array([mc[0, :3], mc[2, :3]])
         if has_distortion(calibration.camera.distortion):
             # undistorted, a row of the camera grid is no line: every pixel's coefficients, once
             self._coef = np.empty((h, w, 8), dtype=np.float64)
@@ -233,7 +351,7 @@ class Triangulator:
                 xc, yc = _undistort(calibration.camera, xc.ravel(), yc.ravel())
                 coef, scale = self._coefficients(mc, u, u3, v, v3, xc, yc)
                 self._coef[top:top + chunk_rows] = (coef * scale[:, None]).reshape(-1, w, 8)
-            self._affine, self._norm_c2 = np.empty((0, 2, 8)), np.empty(0)
+            self._affine, self._norm_c1, self._norm_c2 = np.empty((0, 2, 8)), np.empty(0), np.empty(0)
         else:
             # along a pinhole camera's row the unscaled coefficients are affine in x: 2 x 8 a row
             self._coef = np.empty((0, 0, 8))
@@ -242,6 +360,10 @@ class Triangulator:
             at1, _ = self._coefficients(mc, u, u3, v, v3, np.ones(h), y)
             self._affine = np.stack([at0, at1 - at0], axis=1)
             self._norm_c2 = np.linalg.norm(np.outer(-y, mc[2, :3]) + mc[1, :3], axis=1)
+            x = np.arange(w, dtype=np.float64)
+            # |c1(x)| of every column, summed as a compiled loop would (the same float64 value)
+            squares = [(mc[0, j] - x * mc[2, j]) ** 2 for j in range(3)]
+            self._norm_c1 = np.sqrt(squares[0] + squares[1] + squares[2])
         self._lens = _ProjectorLens(calibration, orientation, chunk_rows) if has_distortion(
             calibration.projector.distortion) else None
 
@@ -265,23 +387,39 @@ class Triangulator:
                  other: ArrayLike | None = None) -> NDArray[np.float32]:
         """World points ``(H, W, 3)`` float32 of a projector-coordinate map (and, optionally, of
         the `other` projector coordinate, for an exact projector undistortion); as `triangulate`."""
+        return self._evaluate(proj_map, valid, other, None)[0]
+
+    def measure(self, proj_map: ArrayLike, valid: ArrayLike | None, test: MeasurableTest, *,
+                other: ArrayLike | None = None) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """`__call__` and `sliscan.pipeline.measurable` in one pass: the world points ``(H, W, 3)``
+        float32 (mm), NaN but where measured, and the ``(H, W)`` bool mask of the measured ones
+        (in `valid`, well-posed and passing `test`)."""
+        points, measured = self._evaluate(proj_map, valid, other, test)
+        assert measured is not None
+        return points, measured
+
+    def _evaluate(self, proj_map: ArrayLike, valid: ArrayLike | None, other: ArrayLike | None,
+                  test: MeasurableTest | None) -> tuple[NDArray[np.float32], NDArray[np.bool_] | None]:
+        """The points of `__call__` and, with a `test`, the mask of `measure` (else None)."""
         proj_map = _check_proj_map("proj_map", proj_map, self.shape)
-        mask = np.isfinite(proj_map)
-        if valid is not None:
-            valid = np.asarray(valid)
-            if valid.dtype != np.bool_ or valid.shape != self.shape:
-                raise InputError(f"valid must be a bool array of shape {self.shape} (H, W), got {valid.dtype} "
-                                 f"{valid.shape}")
-            mask &= valid
+        if valid is None:
+            mask = np.ones(self.shape, dtype=bool)
+        else:
+            mask = np.ascontiguousarray(valid)
+            if mask.dtype != np.bool_ or mask.shape != self.shape:
+                raise InputError(f"valid must be a bool array of shape {self.shape} (H, W), got {mask.dtype} "
+                                 f"{mask.shape}")
         xyz_w = np.empty((*self.shape, 3), dtype=np.float32)
+        measured = None if test is None else np.empty(self.shape, dtype=bool)
         values = np.ascontiguousarray(proj_map if proj_map.dtype.kind == "f" else proj_map.astype(np.float64))
         if self._lens is not None:
             values = self._lens.ideal_map(values, mask, None if other is None else _check_proj_map(
                 "other", other, self.shape))
-            mask &= np.isfinite(values)
-        over_rows(lambda rows: _evaluate_rows(self._coef, self._affine, self._camera, self._norm_c2, self._centre,
-                                              values, mask, self._quad, rows, xyz_w), self.shape[0], self.workers)
-        return xyz_w
+        args = None if test is None else test.args
+        over_rows(lambda rows: _evaluate_rows(self._coef, self._affine, self._norm_c1, self._norm_c2, self._centre,
+                                              values, mask, self._quad, args, rows, xyz_w, measured),
+                  self.shape[0], self.workers)
+        return xyz_w, measured
 
 
 class _ProjectorLens:
