@@ -1028,10 +1028,10 @@ def calibration_poses(count: int, *, tilt_deg: float = 20.0,
     and y axes) and moves its centre by `offset_mm` around an ellipse (a radian further on).
     The tilt pins the focal lengths down; the principal point of a narrow lens is pinned by how
     far into the image corners the board's points reach and by how many there are, not by the
-    tilt (benchmarks/distortion.py, 30-degree lens: OpenCV's standard deviation of the principal
-    point per pixel of point error falls from 29 to 8 going from a 4x11 grid of 20 mm to a
-    view-filling 15x11 one, 12 poses either way, and rises by 5-25 % from 15 to 35 degrees of
-    tilt).  So the defaults suit a board that fills most of the view at the working distance:
+    tilt (the 30-degree lens of benchmarks/distortion.py, exact points plus noise: OpenCV's
+    standard deviation of the principal point per pixel of point error falls from 29 to 8 going
+    from a 4x11 grid of 20 mm to a view-filling 15x11 one, 12 poses either way, and rises by
+    about 15 % from 15 to 35 degrees of tilt).  So the defaults suit a board that fills most of the view at the working distance:
     a moderate tilt, small offsets that keep it inside the view.
 
     Examples
