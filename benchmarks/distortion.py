@@ -12,29 +12,34 @@ projector (0.08, -0.03, -8e-4, 1e-3, 0), 3-5 px of distortion at the image corne
    sphere's clean pixels (`sliscan.evaluate.clean_pixels`, true point on the sphere) and over
    the whole view's (the wall behind the sphere reaches the image corners, where the lenses
    distort most).
-2. Board calibration (`calibrate_board`): 8 poses (`simulate.calibration_poses`: tilted by 35
-   degrees in 8 directions, moved around the image), each under 5-step PMP (1, 8) in both
-   directions, noise-free; a 9x7 chessboard (25 mm), a 7x6 symmetric circle grid (25 mm,
-   radius 7) and OpenCV's 4x11 asymmetric grid (20 mm, radius 5; also without the perspective
-   correction), at 1 and 3 samples per pixel.  Per board: residual RMS; the sphere's RMS error
-   triangulated from the same decoded maps with the estimate, absolute and after the best
-   rigid alignment of the estimate's world (its own camera frame) to the truth
-   (`sliscan.evaluate.rigid_alignment`), against the true calibration's (absolute / aligned);
-   the reprojection of the sphere's true points, absolute and aligned; the camera's principal
-   point error.
+2. Board calibration (`calibrate_board`): 12 poses (`simulate.calibration_poses`: tilted by 20
+   degrees in 12 directions, moved a little around the image), each under 5-step PMP (1, 8) in
+   both directions; a 9x7 chessboard (25 mm), OpenCV's 4x11 asymmetric circle grid (20 mm,
+   radius 5) and a 15x11 symmetric grid (20 mm, radius 6) that fills most of the view; noise-free
+   at 1 and 3 samples per pixel (3: the pixel's box aperture, `Conditions`' default), and the
+   15x11 grid also from realistic captures (two noise seeds) and on a second rig (projector
+   below, other lenses).  Per calibration: residual RMS; the camera's principal point and focal
+   length against the truth and OpenCV's standard deviation of the principal point
+   (`calibrate_board`'s ``intrinsics_std_px``); the sphere's RMS error triangulated from the same
+   decoded maps with the estimate and with the truth, absolute and after the best rigid
+   alignment (`sliscan.evaluate.rigid_alignment`); the reprojection of the sphere's true points,
+   absolute and aligned.  Absolute: the estimate's world is its own camera frame, so the truth
+   is taken into the TRUE camera frame by the rig's known camera pose (no fitting; the identity
+   on these rigs, whose camera sits at the world origin) and compared there.
 3. Circle centres: OpenCV's blob centres (`cv2.findCirclesGrid`) and sliscan's refined ones
    (`sliscan.targets.detect_circle_grid`) against the projected true centres.
 4. Speed: `Triangulator` on a 1296x972 plane with and without the projector's lens (median of
    5 calls; camera lens in both).
 
     python benchmarks/distortion.py --json benchmarks/distortion.json
-    python benchmarks/distortion.py --quick        # the asymmetric grid at 1 sample per pixel only
+    python benchmarks/distortion.py --quick        # the view-filling grid at 3 samples per pixel only
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 import platform
 import time
 
@@ -57,15 +62,24 @@ BOARD_SPEC = PatternSpec(kind="pmp", orientation="both", steps=5, frequencies=(1
                          projector_size=PROJECTOR)
 NOISE_FREE = dict(full_well_e=None, bit_depth=None)
 BOARDS = {"chessboard 9x7": Board("chessboard", (9, 7), 25.0),
-          "symmetric 7x6": Board("symmetric", (7, 6), 25.0, 7.0),
           "asymmetric 4x11": Board("asymmetric", (4, 11), 20.0, 5.0),
-          "asymmetric 4x11, no bias correction": Board("asymmetric", (4, 11), 20.0)}
+          "symmetric 15x11": Board("symmetric", (15, 11), 20.0, 6.0)}
+#: The view-filling grid: the one calibrated from realistic captures and on the second rig.
+FULL_VIEW = "symmetric 15x11"
+POSES = 12
+#: The second rig: the projector below the camera, other lenses.
+RIG_B_LENSES = dict(camera_distortion=(-0.15, 0.08, -8e-4, 6e-4, 0.0),
+                    projector_distortion=(0.05, -0.02, 5e-4, -1e-3, 0.0))
 SPHERE_CENTRE, SPHERE_RADIUS = np.array([0.0, 0.0, 800.0]), 122.555
 
 
 def lens_rig() -> simulate.Rig:
     return simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR, camera_distortion=CAMERA_LENS,
                                 projector_distortion=PROJECTOR_LENS)
+
+
+def rig_b() -> simulate.Rig:
+    return simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR, projector_above=False, **RIG_B_LENSES)
 
 
 def without_lenses(calibration: Calibration, *devices: str) -> Calibration:
@@ -110,6 +124,14 @@ def scan_table() -> tuple[list[dict], dict]:
     return rows, {condition: captures[(condition, False)] for condition in ("noise-free", "realistic")}
 
 
+def sphere_captures(rig: simulate.Rig) -> dict[str, simulate.SequenceCapture]:
+    """The sphere scene on `rig`, noise-free (1 sample per pixel) and realistic (as `scan_table`)."""
+    frames = sequences.render_frames(SCAN_SPEC)
+    return {condition: simulate.render_sequence(rig, simulate.sphere_scene(), frames, cond)
+            for condition, cond in (("noise-free", simulate.Conditions(supersample=1, **NOISE_FREE)),
+                                    ("realistic", simulate.Conditions(supersample=2, seed=1)))}
+
+
 def sphere_points(calibration: Calibration, capture: simulate.SequenceCapture) -> tuple[np.ndarray, np.ndarray]:
     """Scan points of the sphere from the capture's decoded maps, and their truth."""
     maps = sequences.decode_frames(capture.images, SCAN_SPEC)
@@ -119,48 +141,74 @@ def sphere_points(calibration: Calibration, capture: simulate.SequenceCapture) -
     return points[ok].astype(np.float64), capture.truth.points[ok].astype(np.float64)
 
 
-def board_table(spheres: dict, boards: dict[str, Board], supersamples: tuple[int, ...]) -> list[dict]:
-    rig = lens_rig()
-    truth_calib = rig.calibration
+def in_camera_frame(points: np.ndarray, rig: simulate.Rig) -> np.ndarray:
+    """World points (mm) in the rig's true camera frame, by its known pose (no fitting)."""
+    return points @ rig.camera.R.T + rig.camera.t
+
+
+def calibrate_poses(rig: simulate.Rig, board: Board, conditions: simulate.Conditions) -> Calibration:
+    """`calibrate_board` from `POSES` poses of `board` rendered on `rig` under `conditions`."""
     frames = sequences.render_frames(BOARD_SPEC)
+    views = []
+    for k, (tilt, offset) in enumerate(simulate.calibration_poses(POSES)):
+        if board.circles:
+            scene, albedo, _ = simulate.circle_grid_scene(board, tilt_deg=tilt, offset_mm=offset)
+        else:
+            scene, albedo = simulate.board_scene(tilt_deg=tilt, offset_mm=offset, inner_corners=board.size,
+                                                 square_mm=board.spacing)
+        seed = None if conditions.seed is None else conditions.seed + k
+        images = simulate.render_sequence(rig, scene, frames, replace(conditions, albedo=albedo, seed=seed)).images
+        views.append(board_view(sequences.decode_frames(images, BOARD_SPEC), board, interpolate=True))
+    return calibrate_board(views, board, CAMERA, PROJECTOR)
+
+
+def compare(calib: Calibration, rig: simulate.Rig, spheres: dict) -> dict:
+    """`calib` against the truth of `rig`: intrinsics, the sphere's errors and the reprojection
+    of its true points, absolute (in the true camera frame) and aligned."""
+    truth_calib = rig.calibration
+    k, k_true = calib.camera.intrinsics, truth_calib.camera.intrinsics
+    std = calib.extra["intrinsics_std_px"]["camera"]
+    row = {"camera_residual_px": calib.extra["residuals"]["camera"]["rms_px"],
+           "projector_residual_px": calib.extra["residuals"]["projector"]["rms_px"],
+           "principal_point_error_px": float(np.hypot(*(k[:2, 2] - k_true[:2, 2]))),
+           "principal_point_std_px": float(np.hypot(std["cx"], std["cy"])),
+           "focal_error_px": float(np.mean(k[[0, 1], [0, 1]] - k_true[[0, 1], [0, 1]]))}
+    for condition, capture in spheres.items():
+        est, world = sphere_points(calib, capture)
+        ref, ref_truth = sphere_points(truth_calib, capture)
+        rotation, translation = rigid_alignment(ref, ref_truth)
+        row[f"{condition}_true_mm"] = rms(ref - ref_truth)
+        row[f"{condition}_true_aligned_mm"] = rms(ref @ rotation.T + translation - ref_truth)
+        truth = in_camera_frame(world, rig)
+        rotation, translation = rigid_alignment(est, truth)
+        row[f"{condition}_estimated_mm"] = rms(est - truth)
+        row[f"{condition}_estimated_aligned_mm"] = rms(est @ rotation.T + translation - truth)
+    in_estimate = (truth - translation) @ rotation  # true points (camera frame) in the estimate's frame
+    for device in ("camera", "projector"):
+        seen = getattr(truth_calib, device).project(world)
+        row[f"{device}_reprojection_px"] = rms(getattr(calib, device).project(truth) - seen)
+        row[f"{device}_reprojection_aligned_px"] = rms(getattr(calib, device).project(in_estimate) - seen)
+    return row
+
+
+def board_table(spheres: dict, boards: dict[str, Board], supersamples: tuple[int, ...], *,
+                quick: bool = False) -> list[dict]:
+    rig = lens_rig()
+    runs = [(name, board, "noise-free", ss, rig, spheres) for ss in supersamples for name, board in boards.items()]
+    if not quick:
+        runs += [(FULL_VIEW, BOARDS[FULL_VIEW], f"realistic, seed {seed}", seed, rig, spheres) for seed in (1, 2)]
+        other = rig_b()
+        runs.append((FULL_VIEW, BOARDS[FULL_VIEW], "noise-free, rig B", 3, other, sphere_captures(other)))
     rows = []
-    for ss in supersamples:
-        for name, board in boards.items():
-            views, t0 = [], time.perf_counter()
-            for tilt, offset in simulate.calibration_poses(8):
-                if board.circles:
-                    scene, albedo, _ = simulate.circle_grid_scene(
-                        board if board.radius else Board(board.kind, board.size, board.spacing, 5.0),
-                        tilt_deg=tilt, offset_mm=offset)
-                else:
-                    scene, albedo = simulate.board_scene(tilt_deg=tilt, offset_mm=offset, inner_corners=board.size,
-                                                         square_mm=board.spacing)
-                images = simulate.render_sequence(rig, scene, frames,
-                                                  simulate.Conditions(albedo=albedo, supersample=ss,
-                                                                      **NOISE_FREE)).images
-                views.append(board_view(sequences.decode_frames(images, BOARD_SPEC), board, interpolate=True))
-            calib = calibrate_board(views, board, CAMERA, PROJECTOR)
-            row = {"board": name, "supersample": ss, "seconds": time.perf_counter() - t0,
-                   "camera_residual_px": calib.extra["residuals"]["camera"]["rms_px"],
-                   "projector_residual_px": calib.extra["residuals"]["projector"]["rms_px"],
-                   "principal_point_error_px": float(np.hypot(*(calib.camera.intrinsics[:2, 2]
-                                                                - truth_calib.camera.intrinsics[:2, 2])))}
-            for condition, capture in spheres.items():
-                est, truth = sphere_points(calib, capture)
-                ref, ref_truth = sphere_points(truth_calib, capture)
-                rotation, translation = rigid_alignment(ref, ref_truth)
-                row[f"{condition}_true_mm"] = rms(ref - ref_truth)
-                row[f"{condition}_true_aligned_mm"] = rms(ref @ rotation.T + translation - ref_truth)
-                rotation, translation = rigid_alignment(est, truth)
-                row[f"{condition}_estimated_mm"] = rms(est - truth)
-                row[f"{condition}_estimated_aligned_mm"] = rms(est @ rotation.T + translation - truth)
-            in_estimate = (truth - translation) @ rotation  # true points in the estimate's frame
-            for device in ("camera", "projector"):
-                seen = getattr(truth_calib, device).project(truth)
-                row[f"{device}_reprojection_px"] = rms(getattr(calib, device).project(truth) - seen)
-                row[f"{device}_reprojection_aligned_px"] = rms(getattr(calib, device).project(in_estimate) - seen)
-            rows.append(row)
-            print(f"  {name}, {ss} sample(s)/px: {row['seconds']:.1f} s", flush=True)
+    for name, board, condition, value, render_rig, captures in runs:
+        t0 = time.perf_counter()
+        conditions = simulate.Conditions(supersample=value, **NOISE_FREE) if condition.startswith("noise-free") \
+            else simulate.Conditions(supersample=3, seed=100 * value)
+        calib = calibrate_poses(render_rig, board, conditions)
+        row = {"board": name, "captures": condition, "supersample": conditions.supersample,
+               "seconds": time.perf_counter() - t0, **compare(calib, render_rig, captures)}
+        rows.append(row)
+        print(f"  {name}, {condition}, {conditions.supersample} sample(s)/px: {row['seconds']:.1f} s", flush=True)
     return rows
 
 
@@ -207,7 +255,7 @@ def speed_table() -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="the asymmetric grid at 1 sample per pixel only")
+    parser.add_argument("--quick", action="store_true", help="the view-filling grid at 3 samples per pixel only")
     parser.add_argument("--json", help="write the tables here")
     args = parser.parse_args()
     print("scan of the sphere through the lenses (RMS over its clean pixels; and over the whole view's, the wall "
@@ -217,21 +265,22 @@ def main() -> None:
         print(f"  {r['conditions']:10s} {r['calibration']:30s} sphere RMS {r['sphere_rms_mm']:.3f} mm, median "
               f"{r['sphere_median_mm']:.3f} mm; whole view RMS {r['view_rms_mm']:.3f} mm, median "
               f"{r['view_median_mm']:.3f} mm")
-    boards = {k: BOARDS[k] for k in (["asymmetric 4x11"] if args.quick else BOARDS)}
-    print("board calibrations (8 poses, noise-free):")
-    calibrations = board_table(spheres, boards, (1,) if args.quick else (1, 3))
+    boards = {k: BOARDS[k] for k in ([FULL_VIEW] if args.quick else BOARDS)}
+    print(f"board calibrations ({POSES} poses):")
+    calibrations = board_table(spheres, boards, (3,) if args.quick else (1, 3), quick=args.quick)
     for r in calibrations:
-        print(f"  {r['board']:36s} {r['supersample']} s/px: residuals {r['camera_residual_px']:.3f} / "
-              f"{r['projector_residual_px']:.3f} px; sphere RMS noise-free {r['noise-free_estimated_mm']:.3f} abs, "
-              f"{r['noise-free_estimated_aligned_mm']:.3f} aligned vs {r['noise-free_true_mm']:.3f} / "
-              f"{r['noise-free_true_aligned_mm']:.3f} true; realistic {r['realistic_estimated_mm']:.3f} abs, "
-              f"{r['realistic_estimated_aligned_mm']:.3f} aligned vs {r['realistic_true_mm']:.3f} / "
-              f"{r['realistic_true_aligned_mm']:.3f}; reprojection camera {r['camera_reprojection_px']:.3f} abs / "
-              f"{r['camera_reprojection_aligned_px']:.3f} aligned, projector {r['projector_reprojection_px']:.3f} / "
-              f"{r['projector_reprojection_aligned_px']:.3f} px; principal point off "
-              f"{r['principal_point_error_px']:.2f} px")
+        print(f"  {r['board']:16s} {r['captures']:18s} {r['supersample']} s/px: residuals {r['camera_residual_px']:.3f} / "
+              f"{r['projector_residual_px']:.3f} px; principal point off {r['principal_point_error_px']:.3f} px "
+              f"(OpenCV's std {r['principal_point_std_px']:.3f} px), focal length off {r['focal_error_px']:.3f} px; "
+              f"sphere RMS, absolute / aligned: noise-free scan {r['noise-free_estimated_mm']:.3f} / "
+              f"{r['noise-free_estimated_aligned_mm']:.3f} mm (truth {r['noise-free_true_mm']:.3f} / "
+              f"{r['noise-free_true_aligned_mm']:.3f}), realistic scan {r['realistic_estimated_mm']:.3f} / "
+              f"{r['realistic_estimated_aligned_mm']:.3f} mm (truth {r['realistic_true_mm']:.3f} / "
+              f"{r['realistic_true_aligned_mm']:.3f}); reprojection of true points, absolute / aligned: camera "
+              f"{r['camera_reprojection_px']:.3f} / {r['camera_reprojection_aligned_px']:.3f} px, projector "
+              f"{r['projector_reprojection_px']:.3f} / {r['projector_reprojection_aligned_px']:.3f} px")
     centres = centre_table((1,) if args.quick else (1, 2, 3))
-    print("circle centres of the 4x11 asymmetric grid against the truth (8 poses):")
+    print("circle centres of the 4x11 asymmetric grid against the truth (8 poses of calibration_poses):")
     for r in centres:
         print(f"  {r['supersample']} sample(s)/px: OpenCV {r['opencv_rms_px']:.3f} px RMS, "
               f"sliscan {r['sliscan_rms_px']:.3f} px RMS")

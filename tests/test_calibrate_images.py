@@ -210,7 +210,7 @@ def test_circle_grid_centres_are_the_ellipse_centres(board_rig, board):
     """On a grid tilted by 35 degrees (2x2 samples per pixel, noise-free) the centres come in
     OpenCV's order, at the image ellipses' centres to 0.05 px RMS (measured 0.03-0.04 px: the
     aliasing of the edges), where OpenCV's own blob centres are 0.07 px off."""
-    tilt, offset = simulate.calibration_poses(8)[1]
+    tilt, offset = simulate.calibration_poses(8, tilt_deg=35.0, offset_mm=(70.0, 50.0))[1]
     scene, albedo, centres = simulate.circle_grid_scene(board, tilt_deg=tilt, offset_mm=offset)
     image = simulate.render(board_rig, scene, np.ones(board_rig.projector.shape),
                             simulate.Conditions(albedo=albedo, supersample=2, full_well_e=None, bit_depth=None)).image
@@ -233,7 +233,7 @@ def test_perspective_bias_of_circle_grids_is_removed(board_rig, rng):
     focal length 2e-5 px off, points triangulated 1e-4 mm off); without, the bias hides in the
     parameters (residuals stay under 3e-4 px) and costs 0.37 px of focal length and 0.34 mm.
     For OpenCV's 4x11 grid of 5 mm circles the same comparison gives 0.04 mm (the bias is
-    ~0.02 px): small beside a noise-free calibration's 1 mm (tests/test_distortion.py)."""
+    ~0.02 px)."""
     board = Board("symmetric", (6, 5), 40.0, 15.0)
     calibration = board_rig.calibration
     views = []

@@ -784,7 +784,8 @@ def board_geometry(points: ArrayLike, board: Board) -> dict[str, float]:
 class _BoardFit:
     """OpenCV's calibration of both devices from board views: intrinsics ``k``, distortion ``d``
     and per-view board poses ``r`` (Rodrigues), ``t`` of the camera (``c``) and the projector
-    (``p``), and the projector's pose relative to the camera."""
+    (``p``), the projector's pose relative to the camera, and OpenCV's standard deviations of
+    each device's ``fx, fy, cx, cy`` (px; `cv2.calibrateCameraExtended`, from the residuals)."""
 
     kc: FloatArray
     dc: FloatArray
@@ -797,6 +798,8 @@ class _BoardFit:
     rotation: FloatArray
     translation: FloatArray
     stereo_rms_px: float
+    camera_std: FloatArray
+    projector_std: FloatArray
 
 
 def _fit_board(objects: list[NDArray[np.float32]], camera: list[NDArray[np.float32]],
@@ -809,13 +812,14 @@ def _fit_board(objects: list[NDArray[np.float32]], camera: list[NDArray[np.float
     projector_flags = flags if projector_distortion else (
         flags | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST)
     shared = [o[m] for o, m in zip(objects, decoded)]
-    _, kc, dc, rc, tc = cv2.calibrateCamera(objects, camera, tuple(camera_size), None, None, flags=flags)
-    _, kp, dp, rp, tp = cv2.calibrateCamera(shared, projector, tuple(projector_size), None, None,
-                                            flags=projector_flags)
+    _, kc, dc, rc, tc, std_c = cv2.calibrateCameraExtended(objects, camera, tuple(camera_size), None, None,
+                                                           flags=flags)[:6]
+    _, kp, dp, rp, tp, std_p = cv2.calibrateCameraExtended(shared, projector, tuple(projector_size), None, None,
+                                                           flags=projector_flags)[:6]
     stereo = cv2.stereoCalibrate(shared, [c[m] for c, m in zip(camera, decoded)], projector, kc, dc, kp, dp,
                                  tuple(camera_size), flags=cv2.CALIB_FIX_INTRINSIC)
     return _BoardFit(kc, dc.ravel()[:5], tuple(rc), tuple(tc), kp, dp.ravel()[:5], tuple(rp), tuple(tp),
-                     stereo[5], stereo[6].ravel(), float(stereo[0]))
+                     stereo[5], stereo[6].ravel(), float(stereo[0]), std_c.ravel()[:4], std_p.ravel()[:4])
 
 
 def _circle_bias(board: Board, fit: _BoardFit, view: int) -> tuple[FloatArray, FloatArray]:
@@ -889,7 +893,10 @@ def calibrate_board(views: Sequence[BoardView], board: Board, camera_size: tuple
     calibration : Calibration
         Both devices with ``intrinsics`` and ``distortion``.  ``extra``: ``method``
         (``"opencv-board"``), ``board`` (`Board.to_dict`), ``residuals`` (camera and
-        projector RMS and max over every point, px), ``stereo_rms_px``, ``perspective_bias_px``
+        projector RMS and max over every point, px), ``stereo_rms_px``, ``intrinsics_std_px``
+        (per device, OpenCV's standard deviations of ``fx``, ``fy``, ``cx``, ``cy`` in px: a
+        principal point that the poses pin down poorly turns the whole calibration's world, the
+        camera frame, by about its error over the focal length), ``perspective_bias_px``
         (the largest camera correction of a circle centre; 0 for a chessboard or a grid without
         radius), ``views`` (per view: ``camera_rms_px``, ``projector_rms_px``, ``corners`` (the
         board's points), ``projector_corners`` (those with projector coordinates) and the
@@ -954,6 +961,8 @@ def calibrate_board(views: Sequence[BoardView], board: Board, camera_size: tuple
              "residuals": {"camera": summarize_residuals(camera_errors),
                            "projector": summarize_residuals(projector_errors)},
              "stereo_rms_px": fit.stereo_rms_px,
+             "intrinsics_std_px": {device: dict(zip(("fx", "fy", "cx", "cy"), map(float, std)))
+                                   for device, std in (("camera", fit.camera_std), ("projector", fit.projector_std))},
              "perspective_bias_px": float(max(np.linalg.norm(b, axis=1).max() for b in bias)),
              "views": per_view, "outlier_views": outliers}
     result = Calibration(camera, projector, extra)

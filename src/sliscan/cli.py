@@ -1367,6 +1367,11 @@ def _board(size: tuple[int, int], square: float | None, circles: str | None, spa
     return Board(circles, size, spacing, radius)
 
 
+#: OpenCV's standard deviation of the camera's principal point (px) above which calibrate-board
+#: advises more, view-filling poses.
+_PRINCIPAL_POINT_ADVICE_PX = 0.5
+
+
 @cli.command("calibrate-board", epilog="""\b
 Examples:
   sliscan calibrate-board pose_0/ pose_1/ pose_2/ --pattern gc/gc.json --board 9x7 --square 75 -o rig.json
@@ -1460,8 +1465,14 @@ def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, 
     flagged = f"; outlier poses: {', '.join(str(used[k]) for k in outliers)}" if outliers else ""
     bias = calib.extra["perspective_bias_px"]
     corrected = f" (perspective bias {bias:.2g} px corrected)" if board.radius is not None else ""
+    std = calib.extra["intrinsics_std_px"]["camera"]
     click.echo(f"wrote {', '.join(written)}: {len(views)} of {len(poses)} poses, {board.describe()}{corrected}; "
-               f"reprojection {_residual_summary(calib)}; stereo RMS {calib.extra['stereo_rms_px']:.3g} px{flagged}")
+               f"reprojection {_residual_summary(calib)}; stereo RMS {calib.extra['stereo_rms_px']:.3g} px; "
+               f"camera principal point +-{std['cx']:.2g}, {std['cy']:.2g} px{flagged}")
+    if max(std["cx"], std["cy"]) > _PRINCIPAL_POINT_ADVICE_PX:
+        click.echo(f"note: the camera's principal point is uncertain by more than {_PRINCIPAL_POINT_ADVICE_PX:g} px, "
+                   "which turns the whole calibration's frame by that over the focal length: take more poses "
+                   "with the board filling most of the view (out to the image corners)", err=True)
 
 
 # --------------------------------------------------------------------------------------------
