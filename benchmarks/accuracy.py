@@ -75,6 +75,7 @@ PHASE_VARIANTS = {
     "sliscan 4-bit + phase (no smoothing)": dict(fringe_options=dict(smooth=False)),
     "sliscan 4-bit + phase (no rescue)": dict(fringe_options=dict(rescue=False)),
     "sliscan 4-bit + phase (no extension)": dict(fringe_options=dict(extend=False)),
+    "sliscan 4-bit + phase (no unmixing)": dict(fringe_options=dict(unmix=False)),
     "sliscan 4-bit + phase (strict Gray code)": dict(decode_options=dict(min_snr=3.0, min_confidence=0.1)),
 }
 

@@ -441,7 +441,7 @@ EXTEND_SNR = 4.0
 
 def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: PatternSpec, *,
            max_disagreement: float = 0.5, min_modulation: float = 0.5, smooth: bool = True,
-           rescue: bool = True, extend: bool = True) -> Decoded:
+           rescue: bool = True, extend: bool = True, unmix: bool = True) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -476,6 +476,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         carriers are well above the noise (`EXTEND_SHARE`, `EXTEND_SPREAD`, `EXTEND_SNR`); kept
         on the same terms as a rescued pixel.  Needs the window demodulator's noise estimate
         (skipped without it).
+    unmix : bool
+        Fit and take out the projector's carrier products on the phase carriers (`crosstalk`);
+        if false, each phase carrier is taken for its fringe alone (for the benchmark's record).
 
     Returns
     -------
@@ -490,7 +493,8 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     step = sample_step(decoded.valid, LEVEL_SAMPLES)  # the ratios of channel_levels' sample only
     sample = (demod.amplitude[spec.bits:spec.bits + n, ::step, ::step]
               / np.maximum(demod.dc[::step, ::step], np.float32(1e-6)))
-    levels = channel_levels(sample, decoded.valid[::step, ::step], spec, stripes=decoded.stripe[::step, ::step])
+    levels = channel_levels(sample, decoded.valid[::step, ::step], spec,
+                            stripes=decoded.stripe[::step, ::step] if unmix else None)
     phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe)
     phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
