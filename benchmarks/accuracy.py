@@ -63,7 +63,7 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
                                                             phase_carriers=tuple(sorted(base.carriers)[:3]))
         # more of the drive on the phase carriers: each bit weaker (b_p keeps the drive in range)
         for weight in (1.5, 2.0):
-            specs[f"4-bit + phase, phase weight {weight:g}"] = base.with_(
+            specs[f"4-bit + phase (phase weight {weight:g})"] = base.with_(
                 phase_weight=weight, b_p=0.5 / (base.bits + len(base.phase_carriers) * weight))
         for bits in (6, 8):
             carriers = tuple(k * width / 8 / bits for k in range(1, bits + 1))
