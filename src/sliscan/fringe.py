@@ -309,7 +309,10 @@ def _twiced_box(values: NDArray[np.float32], coarse: NDArray[np.float32], length
     units of `B`: the box's bias on a curved profile (``f'' length^2 / 24``) cancels to second
     order ("twicing"), and so does any ripple of period `length`, which both boxes null."""
     once = _segment_box(values, coarse, length // 2, max_jump)
-    return 2 * once - _segment_box(once, coarse, length // 2, max_jump) * np.float32(1 / length)
+    twice = _segment_box(once, coarse, length // 2, max_jump)
+    twice *= np.float32(1 / length)
+    once *= np.float32(2)
+    return np.subtract(once, twice, out=twice)  # in place: these are full frames
 
 
 def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, along_carriers: int,
@@ -328,6 +331,7 @@ def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, 
     """
     rows = _twiced_box(phasor, coarse, along_carriers, max_jump)
     columns = _segment_box(rows.transpose(0, 2, 1), coarse.T, along_phase // 2, max_jump)
+    del rows  # full frames: free each as soon as it is summed
     return np.ascontiguousarray(columns.transpose(0, 2, 1))
 
 
@@ -405,7 +409,9 @@ def local_reference(line: NDArray[np.float32], sure: NDArray[np.bool_], coarse: 
     """
     values = np.stack([np.where(sure, line, 0), sure]).astype(np.float32)
     rows = _segment_box(values, coarse, radius_carriers, max_jump)
+    del values  # full frames: free each as soon as it is summed
     sums = _segment_box(rows.transpose(0, 2, 1), coarse.T, radius_phase, max_jump).transpose(0, 2, 1)
+    del rows
     enough = sums[1] >= min_share * (2 * radius_carriers + 1) * (2 * radius_phase + 1)
     return np.where(enough, sums[0] / np.maximum(sums[1], 1), np.nan).astype(np.float32)
 
@@ -422,7 +428,9 @@ def neighbour_lines(line: NDArray[np.float32], *, radius_carriers: int,
     values = np.stack([finite, np.where(finite, line, 0), np.where(finite, line * line, 0)]).astype(np.float32)
     everywhere = np.zeros(line.shape, np.float32)  # one run per row: a plain box
     rows = _segment_box(values, everywhere, radius_carriers, 0.0)
+    del values  # full frames: free each as soon as it is summed
     sums = _segment_box(rows.transpose(0, 2, 1), everywhere.T, radius_phase, 0.0).transpose(0, 2, 1)
+    del rows
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = sums[1] / sums[0]
         spread = np.sqrt(np.maximum(sums[2] / sums[0] - mean * mean, 0))
@@ -515,14 +523,19 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     over_rows(lambda rows: _rescue_rows(summed, line, strong, sure, reference, period, rescue, spec.stripes,
                                         spec.phase_lines, rows, out, stripe), shape[0])
     if extend and demod.noise is not None:
+        del reference, summed, coarse  # the first pass's, no longer needed: memory for the second
         kept = np.isfinite(out)
         share, mean, spread = neighbour_lines(out, radius_carriers=carriers.window // 2, radius_phase=along_phase)
         snr = np.sqrt(np.sum(np.square(demod.amplitude[spec.bits:spec.bits + n]), axis=0)) / np.maximum(demod.noise, 1e-12)
         joins = (~kept & (share >= EXTEND_SHARE) & (spread <= EXTEND_SPREAD * stripe_lines)
                  & frame(snr >= EXTEND_SNR))
+        del share, spread, snr
         new = frame(joins) & ~decoded.valid  # the others have their phasors already
-        extra = phasors(demod, new, levels, spec, frame(stripe_of_line(mean, spec).astype(np.int16)))
+        stripes = np.full(new.shape, -1, np.int16)
+        stripes[new] = stripe_of_line(frame(mean)[new], spec)
+        extra = phasors(demod, new, levels, spec, stripes)
         phasor += np.stack([frame(p) for p in extra]) if spec.orientation != "rows" else extra
+        del extra
         around = np.where(kept, out, np.where(joins, mean, np.float32(np.nan))).astype(np.float32)
         summed = (smooth_phasors(phasor, around, along_carriers=carriers.window, along_phase=along_phase,
                                  max_jump=max_jump) if smooth else phasor)
