@@ -124,11 +124,12 @@ def crosstalk(spec: PatternSpec) -> tuple[NDArray[np.float64], NDArray[np.float6
     return big_c, small_c
 
 
-def _unmixing(levels: ChannelLevels, spec: PatternSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _unmixing(levels: ChannelLevels, big_c: NDArray[np.float64],
+              small_c: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Per stripe, the map from a pixel's levels ``(ratio - offset) / gain`` to its fringes:
-    ``I = M[stripe] @ (level - v[stripe])``, inverting ``level = I + k (C I + c)``; one more
-    entry (index S) is the identity, for pixels without a stripe.  ``(S + 1, N, N)``, ``(S + 1, N)``."""
-    big_c, small_c = crosstalk(spec)
+    ``I = M[stripe] @ (level - v[stripe])``, inverting ``level = I + k (C I + c)`` (``C, c``
+    from `crosstalk`); one more entry (index S) is the identity, for pixels without a stripe.
+    ``(S + 1, N, N)``, ``(S + 1, N)``."""
     n = big_c.shape[1]
     kappa = levels.crosstalk[None, :, None]
     mix = np.linalg.inv(np.eye(n)[None] + kappa * big_c)
@@ -188,7 +189,7 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
     share = np.ones(samples.shape[1])
     for _ in range(max_iterations):
         gain, offset, kappa = levels.gain, levels.offset, levels.crosstalk
-        mix, shift = _unmixing(levels, spec)
+        mix, shift = _unmixing(levels, big_c, small_c)
         level = (samples / share - offset[:, None]) / gain[:, None]
         c, s = _phasor_parts(np.einsum("mij,jm->im", mix[stripe], level - shift[stripe].T), shifts)
         fringe = 0.5 * (1 + np.cos(np.arctan2(s, c)[None, :] - shifts[:, None]))  # (N, M)
@@ -257,7 +258,7 @@ def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels,
     compiled kernel, rows in threads.
     """
     shifts = phase_shifts(spec)
-    mix, shift = _unmixing(levels, spec)
+    mix, shift = _unmixing(levels, *crosstalk(spec))
     out = np.empty((3, *demod.dc.shape), dtype=np.float32)
     args = (np.ascontiguousarray(demod.amplitude), spec.bits, np.ascontiguousarray(demod.dc), np.ascontiguousarray(valid),
             np.ascontiguousarray(stripes, dtype=np.int16), levels.gain.astype(np.float64),
