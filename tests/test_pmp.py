@@ -9,7 +9,7 @@ import pytest
 import scipy.ndimage
 
 from sliscan import InputError, PatternSpec, Scanner, evaluate, patterns, simulate
-from sliscan.pmp import decode_pmp, fit_fringes, fringe_profile, noise_level, pattern_frames, unwrap_step
+from sliscan.pmp import _atan2_turns, decode_pmp, fit_fringes, fringe_profile, noise_level, pattern_frames, unwrap_step
 from sliscan.sequences import render_frames
 
 PROJECTOR = (1024, 768)
@@ -130,6 +130,36 @@ def test_unwrap_step_picks_the_nearest_order():
     np.testing.assert_allclose(coord, 100.0, atol=1e-4)
     assert order.tolist() == [[8, 8, 8]]
     np.testing.assert_allclose(distance, [[0.0, 5.9 / 12, -5.9 / 12]], atol=1e-5)
+
+
+def test_compiled_arctangent_is_within_its_stated_error(rng):
+    """The kernel's polynomial atan2 (in turns, [0, 1)) against numpy's, on random points and the axes."""
+    y, x = rng.normal(size=(2, 5000))
+    y, x = np.append(y, [0.0, 0.0, 1.0, -1.0, -1e-9]), np.append(x, [1.0, -1.0, 0.0, 0.0, 1.0])
+    ours = np.array([_atan2_turns(a, b) for a, b in zip(y, x)])
+    exact = np.arctan2(y, x) / (2 * np.pi)
+    assert np.all((ours >= 0) & (ours < 1))
+    assert np.abs((ours - exact + 0.5) % 1 - 0.5).max() < 3e-7
+
+
+@pytest.mark.parametrize("frequencies, steps", [((1.0, 8.0, 64.0), 4), ((1.0, 16.0), 3), ((15.0, 16.0), 4)])
+def test_compiled_decoding_equals_the_numpy_composition(small_rig, sphere, frequencies, steps):
+    """The one-pass kernel against `fringe_fits` + `noise_level` + `unwrap_step` in numpy (tests/pmp_reference.py):
+    equal to float32 rounding and the polynomial arctangent (1e-3 lines at these periods); the validity may differ
+    only where the modulation sits at the threshold, which the kernel takes from a sample of the noise."""
+    from pmp_reference import decode_pmp as numpy_decode
+
+    spec = SPEC.with_(frequencies=frequencies, steps=steps)
+    frames = sphere.images if spec == SPEC else simulate.render_sequence(
+        small_rig, simulate.sphere_scene(), render_frames(spec), realistic(2)).images
+    ours, numpy_way = decode_pmp(frames, spec, "rows"), numpy_decode(frames, spec, "rows")
+    assert np.mean(ours.valid != numpy_way.valid) < 1e-3
+    both = ours.valid & numpy_way.valid
+    assert np.abs(ours.coord - numpy_way.coord)[both].max() < 1e-3
+    assert np.array_equal(ours.index[both], numpy_way.index[both])
+    assert np.isnan(ours.coord[~ours.valid]).all() and (ours.index[~ours.valid] == -1).all()
+    np.testing.assert_allclose(ours.confidence, numpy_way.confidence, atol=1e-5)
+    np.testing.assert_allclose(ours.brightness, numpy_way.brightness, atol=1e-5)
 
 
 def test_contradicting_levels_are_rejected():

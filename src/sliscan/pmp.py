@@ -32,10 +32,12 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.stats
 from numpy.typing import NDArray
 
+from sliscan._threads import over_rows
 from sliscan._validate import to_uint8
 from sliscan.patterns import precorrect
 from sliscan.types import PatternSpec
@@ -183,22 +185,21 @@ def noise_level(fits: Sequence[Fringes], steps: int) -> float:
     the smaller is taken; never below `QUANTISATION_NOISE`, which is also the answer when the
     frames leave no degree of freedom (3 steps at one frequency).
     """
+    dc = np.stack([fit.dc for fit in fits])
+    return pooled_noise(np.sum([fit.residual for fit in fits], axis=0),
+                        steps * np.sum((dc - dc.mean(axis=0)) ** 2, axis=0), len(fits), steps)
+
+
+def pooled_noise(residual: NDArray[np.floating], spread: NDArray[np.floating], frequencies: int, steps: int) -> float:
+    """`noise_level` from its two per-pixel maps (any shape): `residual`, the fits' squared
+    misfits summed over the frequencies, and `spread`, ``steps`` times the squared deviations of
+    each frequency's DC from their mean, summed."""
     variances = []
     if steps > 3:
-        residual = np.sum([fit.residual for fit in fits], axis=0)
-        variances.append(float(np.median(residual)) / scipy.stats.chi2.ppf(0.5, len(fits) * (steps - 3)))
-    if len(fits) > 1:
-        dc = np.stack([fit.dc for fit in fits])
-        spread = steps * np.sum((dc - dc.mean(axis=0)) ** 2, axis=0)
-        variances.append(float(np.median(spread)) / scipy.stats.chi2.ppf(0.5, len(fits) - 1))
+        variances.append(float(np.median(residual)) / scipy.stats.chi2.ppf(0.5, frequencies * (steps - 3)))
+    if frequencies > 1:
+        variances.append(float(np.median(spread)) / scipy.stats.chi2.ppf(0.5, frequencies - 1))
     return max(math.sqrt(min(variances)), QUANTISATION_NOISE) if variances else QUANTISATION_NOISE
-
-
-def unit_coordinate(cycles: NDArray[np.float32], lines: int) -> NDArray[np.float32]:
-    """Projector line of a unit-frequency phase (any real `cycles`, wrapped here) in
-    ``[-0.5, lines - 0.5)``: the projector's extent, so the wrap falls between its two ends."""
-    shifted = cycles + np.float32(0.5 / lines)
-    return ((shifted - np.floor(shifted)) * np.float32(lines) - np.float32(0.5)).astype(np.float32)
 
 
 def unwrap_step(coarse: NDArray[np.float32], cycles: NDArray[np.float32],
@@ -257,9 +258,115 @@ def modulation_threshold(sigma: float, steps: int, min_snr: float) -> float:
     return min_snr * sigma * math.sqrt(2.0 / steps)
 
 
+#: `decode_pmp` estimates the noise on every `NOISE_STRIDE`-th pixel along both axes (a median
+#: of 1/16 of the image; the median of the whole one cost a third of the decoding's time).
+NOISE_STRIDE = 4
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _atan2_turns(y: float, x: float) -> float:
+    """``atan2(y, x) / 2 pi`` wrapped to [0, 1), from a degree-11 odd minimax polynomial of
+    atan on [0, 1] (error under 3e-7 turns, 2e-6 rad) and the octant's symmetries.  Plain
+    arithmetic, so the row loop vectorises (``math.atan2`` is a library call per pixel)."""
+    ax, ay = abs(x), abs(y)
+    big, small = max(ax, ay), min(ax, ay)
+    t = small / big if big > 0 else 0.0
+    t2 = t * t
+    angle = t * (0.99997726 + t2 * (-0.33262347 + t2 * (0.19354346 + t2 * (-0.11643287 + t2 * (0.05265332
+                                                                                         - t2 * 0.01172120)))))
+    angle = 0.5 * math.pi - angle if ay > ax else angle
+    angle = math.pi - angle if x < 0 else angle
+    turns = angle / (2 * math.pi)
+    return 1.0 - turns if y < 0 and turns > 0 else turns
+
+
+@numba.njit(cache=True, nogil=True)
+def _pmp_rows(frames: NDArray, cos_step: NDArray[np.float64], sin_step: NDArray[np.float64],
+              frequencies: NDArray[np.float64], lines: int, rows: NDArray[np.intp], coord: NDArray[np.float32],
+              order: NDArray[np.int32], ambiguity: NDArray[np.float32], modulation: NDArray[np.float32],
+              visibility: NDArray[np.float32], brightness: NDArray[np.float32], residual: NDArray[np.float32],
+              spread: NDArray[np.float32]) -> None:
+    """Every frequency's N-step fit (`fit_fringes`) and the hierarchical unwrapping (the unit
+    frequency's phase, or a heterodyne pair's beat, placed on the projector's extent, then
+    `unwrap_step` per frequency) of the given `rows`, so the frames are read once.  `frames`
+    ``(F N, H, W)`` in the spec's order; outputs ``(H, W)``: the unwrapped coordinate and finest
+    fringe order, the largest unwrapping distance, the smallest modulation, the finest
+    frequency's visibility ``B / A`` clipped to [0, 1], the mean DC, and the two maps of
+    `pooled_noise` (the fit's residual in closed form: the frames' energy less the fitted one,
+    ``N A^2 + (2 / N) |sum_n I_n e^{i d_n}|^2``).  Each row is summed frame by frame along x
+    first, then finished quantity by quantity (loops along x the compiler vectorises)."""
+    n_freq, steps = frequencies.size, cos_step.size
+    width = frames.shape[2]
+    c, s, dc, turns = np.empty((n_freq, width)), np.empty((n_freq, width)), np.empty((n_freq, width)), \
+        np.empty((n_freq, width))
+    scratch = np.empty((8, width))  # the row's per-pixel quantities
+    energy, weakest, mean_dc, fitted, deviation, line, fringe, worst = scratch
+    for r in rows:
+        c[:], s[:], dc[:], energy[:] = 0.0, 0.0, 0.0, 0.0
+        for f in range(n_freq):
+            for n in range(steps):
+                plane = frames[f * steps + n, r]
+                for x in range(width):
+                    value = float(plane[x])
+                    c[f, x] += cos_step[n] * value
+                    s[f, x] += sin_step[n] * value
+                    dc[f, x] += value
+                    energy[x] += value * value
+        weakest[:], mean_dc[:], fitted[:], deviation[:], worst[:] = np.inf, 0.0, 0.0, 0.0, 0.0
+        for f in range(n_freq):
+            for x in range(width):
+                a = dc[f, x] / steps
+                power = c[f, x] * c[f, x] + s[f, x] * s[f, x]
+                weakest[x] = min(weakest[x], power)
+                mean_dc[x] += a / n_freq
+                fitted[x] += steps * a * a + 2.0 / steps * power
+                turns[f, x] = _atan2_turns(s[f, x], c[f, x])
+        for f in range(n_freq):
+            for x in range(width):
+                deviation[x] += (dc[f, x] / steps - mean_dc[x]) ** 2
+        for x in range(width):
+            unit = turns[0, x] if frequencies[0] == 1 else turns[1, x] - turns[0, x]
+            shifted = unit + 0.5 / lines
+            line[x] = (shifted - math.floor(shifted)) * lines - 0.5
+        for f in range(1, n_freq):
+            period = lines / frequencies[f]
+            for x in range(width):
+                target = line[x] / period - turns[f, x]
+                fringe[x] = math.floor(target + 0.5)
+                line[x] = (turns[f, x] + fringe[x]) * period
+                worst[x] = max(worst[x], abs(target - fringe[x]))
+        last = n_freq - 1
+        for x in range(width):
+            b_last = 2.0 / steps * math.sqrt(c[last, x] * c[last, x] + s[last, x] * s[last, x])
+            a_last = dc[last, x] / steps
+            visibility[r, x] = min(max(b_last / a_last, 0.0), 1.0) if a_last > 0 else 0.0
+            coord[r, x], order[r, x], ambiguity[r, x] = line[x], int(fringe[x]), worst[x]
+            modulation[r, x], brightness[r, x] = 2.0 / steps * math.sqrt(weakest[x]), mean_dc[x]
+            residual[r, x], spread[r, x] = max(energy[x] - fitted[x], 0.0), steps * deviation[x]
+
+
+@numba.njit(cache=True, nogil=True)
+def _pmp_valid_rows(coord: NDArray[np.float32], order: NDArray[np.int32], ambiguity: NDArray[np.float32],
+                    modulation: NDArray[np.float32], min_modulation: float, max_ambiguity: float, lines: int,
+                    rows: NDArray[np.intp], valid: NDArray[np.bool_]) -> None:
+    """`valid` for the given `rows`; `coord` NaN and `order` -1 elsewhere, in place."""
+    for r in rows:
+        for x in range(coord.shape[1]):
+            ok = (modulation[r, x] > min_modulation and ambiguity[r, x] <= max_ambiguity
+                  and -0.5 <= coord[r, x] < lines - 0.5)
+            valid[r, x] = ok
+            if not ok:
+                coord[r, x], order[r, x] = np.nan, -1
+
+
 def decode_pmp(frames: NDArray[np.float32], spec: PatternSpec, direction: str, *, min_snr: float = 5.0,
                max_ambiguity: float = 0.3) -> ProjectorMap:
     """Projector coordinate along `direction` of every camera pixel of a ``pmp`` capture.
+
+    One compiled pass over the frames fits every frequency and unwraps (`_pmp_rows`); the
+    noise (`pooled_noise`, on every `NOISE_STRIDE`-th pixel) then sets the modulation threshold
+    of a second, short pass.  Equal to composing `fringe_fits`, `noise_level` and `unwrap_step`
+    up to float32 rounding and the noise estimate's sample (tested against that composition).
 
     Parameters
     ----------
@@ -280,24 +387,22 @@ def decode_pmp(frames: NDArray[np.float32], spec: PatternSpec, direction: str, *
     ProjectorMap
         `coord` with sub-pixel precision, `index` the fringe order of the finest frequency.
     """
-    fits = fringe_fits(frames, spec, direction)
-    sigma = noise_level(fits, spec.steps)
+    block = len(spec.frequencies) * spec.steps
+    start = spec.directions.index(direction) * block
+    own = np.ascontiguousarray(frames[start:start + block])
+    shape = own.shape[1:]
+    coord, ambiguity, modulation, visibility, brightness, residual, spread = (
+        np.empty(shape, np.float32) for _ in range(7))
+    order = np.empty(shape, np.int32)
+    delta = 2 * np.pi * np.arange(spec.steps) / spec.steps
     lines = spec.lines(direction)
-    freqs = spec.frequencies
-    unit = fits[0].cycles if freqs[0] == 1 else fits[1].cycles - fits[0].cycles
-    coord = unit_coordinate(unit, lines)
-    order = np.zeros(coord.shape, dtype=np.int32)
-    ambiguity = np.zeros(coord.shape, dtype=np.float32)
-    for fit, f in zip(fits[1:], freqs[1:]):
-        coord, order, distance = unwrap_step(coord, fit.cycles, lines / f)
-        ambiguity = np.maximum(ambiguity, np.abs(distance))
-    modulation = np.min([fit.modulation for fit in fits], axis=0)
-    valid = ((modulation > modulation_threshold(sigma, spec.steps, min_snr)) & (ambiguity <= max_ambiguity)
-             & (coord >= -0.5) & (coord < lines - 0.5))
-    finest = fits[-1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        visibility = np.where(finest.dc > 0, finest.modulation / finest.dc, 0)
-    return ProjectorMap(coord=np.where(valid, coord, np.nan).astype(np.float32), valid=valid,
-                        index=np.where(valid, order, -1).astype(np.int32),
-                        confidence=np.clip(visibility, 0, 1).astype(np.float32),
-                        brightness=np.mean([fit.dc for fit in fits], axis=0).astype(np.float32))
+    over_rows(lambda rows: _pmp_rows(own, np.cos(delta), np.sin(delta), np.asarray(spec.frequencies, np.float64),
+                                     lines, rows, coord, order, ambiguity, modulation, visibility, brightness,
+                                     residual, spread), shape[0])
+    sample = (slice(None, None, NOISE_STRIDE),) * 2
+    sigma = pooled_noise(residual[sample], spread[sample], len(spec.frequencies), spec.steps)
+    threshold = modulation_threshold(sigma, spec.steps, min_snr)
+    valid = np.empty(shape, bool)
+    over_rows(lambda rows: _pmp_valid_rows(coord, order, ambiguity, modulation, threshold, max_ambiguity, lines,
+                                           rows, valid), shape[0])
+    return ProjectorMap(coord=coord, valid=valid, index=order, confidence=visibility, brightness=brightness)
