@@ -313,18 +313,21 @@ def _flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     one straddles an albedo edge or a shadow border and the one-sided one does not."""
     width = line.size
     cum, cum2 = _cumsum0(line), _cumsum0(line * line)
+    n_starts = width - window + 1
+    means, variations = np.empty(n_starts), np.empty(n_starts)  # per window start, in a loop that vectorises
+    for s in range(n_starts):
+        mean = (cum[s + window] - cum[s]) / window
+        means[s] = mean
+        variations[s] = ((cum2[s + window] - cum2[s]) / window - mean * mean) / max(mean * mean, 1e-12)
     out = np.empty(width)
     for x in range(width):
-        best_mean = best_var = centre_var = 0.0
-        for k, placement in enumerate(_PLACEMENTS):
-            s = _window_start(x, width, window, placement)
-            mean = (cum[s + window] - cum[s]) / window
-            var = ((cum2[s + window] - cum2[s]) / window - mean * mean) / max(mean * mean, 1e-12)
-            if k == 0:
-                best_mean, best_var, centre_var = mean, var, var
-            elif var < best_var and var < FLAT_GAIN * centre_var:
-                best_mean, best_var = mean, var
-        out[x] = best_mean
+        centre = _window_start(x, width, window, _PLACEMENTS[0])
+        best = centre
+        for k in range(1, len(_PLACEMENTS)):
+            s = _window_start(x, width, window, _PLACEMENTS[k])
+            if variations[s] < variations[best] and variations[s] < FLAT_GAIN * variations[centre]:
+                best = s
+        out[x] = means[best]
     return out
 
 
@@ -413,54 +416,82 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
     if abs(det) <= 1e-12:
         det = 1e-12
     # The fit depends on the window's start only: fit each start once, then pick per pixel.
+    # Each quantity is computed for all starts in turn (the innermost loops run over starts,
+    # which the compiler vectorises); per start the operations and their order are those of
+    # one start at a time.
     n_starts = width - window + 1
     fit_u, fit_var, fit_d, fit_slope = np.empty(n_starts), np.empty(n_starts), np.empty(n_starts), np.empty(n_starts)
-    fit_c = np.empty((n_starts, n_carriers), dtype=np.complex128)  # in the window's phase
-    q = np.empty(n_carriers, dtype=np.complex128)
+    fit_c = np.empty((n_carriers, n_starts), dtype=np.complex128)  # in the window's phase
+    q = np.empty((n_carriers, n_starts), dtype=np.complex128)
+    m0, m1, b1, b2 = np.empty(n_starts), np.empty(n_starts), np.empty(n_starts), np.empty(n_starts)
+    cross, model_sq = np.empty(n_starts), np.empty(n_starts)
     for s in range(n_starts):
         e = s + window
-        centre = s + (window - 1) / 2
-        m0 = (cum_i[e] - cum_i[s]) / window
-        m1 = (cum_xi[e] - cum_xi[s]) / window - centre * m0
-        b1, b2 = m0, m1
-        for n in range(n_carriers):
-            q[n] = (cum_q[n, e] - cum_q[n, s]) / window * np.conj(phasors[n, s])
-            b1 -= 2 * (q[n] * np.conj(g0[n])).real
-            b2 -= 2 * (q[n] * np.conj(h0[n])).real
-        d = (b1 * a22 - a12 * b2) / det
-        slope = (a11 * b2 - a21 * b1) / det
-        mean_sq = (cum_i2[e] - cum_i2[s]) / window
-        cross = d * m0 + slope * m1
-        model_sq = d * d + slope * slope * t2
-        c = fit_c[s]
-        for n in range(n_carriers):
-            c[n] = q[n] - d * g0[n] - slope * h0[n]
-            cross += 2 * (np.conj(c[n]) * q[n]).real
-            model_sq += 4 * d * (c[n] * np.conj(g0[n])).real + 4 * slope * (c[n] * np.conj(h0[n])).real
-        for n in range(n_carriers):
-            # pairs (n, m >= n): the sum and difference frequencies' window means
-            model_sq += 2 * (c[n] * c[n] * sums0[n, n]).real + 2 * (c[n].real ** 2 + c[n].imag ** 2)
-            for m in range(n + 1, n_carriers):
-                model_sq += 4 * (c[n] * c[m] * sums0[n, m]).real + 4 * (c[n] * np.conj(c[m]) * diffs0[n, m]).real
-        fit_u[s], fit_var[s] = max(mean_sq - 2 * cross + model_sq, 0.0), max(mean_sq - m0 * m0, 0.0)
+        m0[s] = (cum_i[e] - cum_i[s]) / window
+        m1[s] = (cum_xi[e] - cum_xi[s]) / window - (s + (window - 1) / 2) * m0[s]
+        b1[s], b2[s] = m0[s], m1[s]
+    for n in range(n_carriers):
+        for s in range(n_starts):
+            q[n, s] = (cum_q[n, s + window] - cum_q[n, s]) / window * np.conj(phasors[n, s])
+            b1[s] -= 2 * (q[n, s] * np.conj(g0[n])).real
+            b2[s] -= 2 * (q[n, s] * np.conj(h0[n])).real
+    for s in range(n_starts):
+        d = (b1[s] * a22 - a12 * b2[s]) / det
+        slope = (a11 * b2[s] - a21 * b1[s]) / det
         fit_d[s], fit_slope[s] = d, slope
+        cross[s] = d * m0[s] + slope * m1[s]
+        model_sq[s] = d * d + slope * slope * t2
+    for n in range(n_carriers):
+        for s in range(n_starts):
+            c = q[n, s] - fit_d[s] * g0[n] - fit_slope[s] * h0[n]
+            fit_c[n, s] = c
+            cross[s] += 2 * (np.conj(c) * q[n, s]).real
+            model_sq[s] += 4 * fit_d[s] * (c * np.conj(g0[n])).real + 4 * fit_slope[s] * (c * np.conj(h0[n])).real
+    re, im = fit_c.real.copy(), fit_c.imag.copy()  # the pairs in real arithmetic (it vectorises)
+    for n in range(n_carriers):
+        # pairs (n, m >= n): the sum and difference frequencies' window means
+        sr, si = sums0[n, n].real, sums0[n, n].imag
+        for s in range(n_starts):
+            pr = re[n, s] * re[n, s] - im[n, s] * im[n, s]  # c_n c_n
+            pi = re[n, s] * im[n, s] + im[n, s] * re[n, s]
+            model_sq[s] += 2 * (pr * sr - pi * si) + 2 * (re[n, s] ** 2 + im[n, s] ** 2)
+        for m in range(n + 1, n_carriers):
+            sr, si, dr, di = sums0[n, m].real, sums0[n, m].imag, diffs0[n, m].real, diffs0[n, m].imag
+            for s in range(n_starts):
+                pr = re[n, s] * re[m, s] - im[n, s] * im[m, s]  # c_n c_m
+                pi = re[n, s] * im[m, s] + im[n, s] * re[m, s]
+                qr = re[n, s] * re[m, s] + im[n, s] * im[m, s]  # c_n conj(c_m)
+                qi = im[n, s] * re[m, s] - re[n, s] * im[m, s]
+                model_sq[s] += 4 * (pr * sr - pi * si) + 4 * (qr * dr - qi * di)
+    for s in range(n_starts):
+        mean_sq = (cum_i2[s + window] - cum_i2[s]) / window
+        fit_u[s], fit_var[s] = max(mean_sq - 2 * cross[s] + model_sq[s], 0.0), max(mean_sq - m0[s] * m0[s], 0.0)
+    chosen, near, prediction = np.empty(width, np.intp), np.empty(width, np.intp), np.empty(width)
     for xi in range(width):
         best = _window_start(xi, width, window, 0)
         for k in range(1, len(_PLACEMENTS) if adaptive else 1):
             s = _window_start(xi, width, window, _PLACEMENTS[k])
             if fit_u[s] < fit_u[best] and fit_u[s] < PLACEMENT_GAIN * fit_u[_window_start(xi, width, window, 0)]:
                 best = s
-        near = min(max(xi - short // 2, 0), max(width - short, 0))
-        prediction = fit_d[best] + fit_slope[best] * (xi - (best + (window - 1) / 2))
-        for n in range(n_carriers):
-            prediction += 2 * (fit_c[best, n] * phasors[n, best] * np.conj(phasors[n, near]) * near0[n]).real
+        chosen[xi] = best
+        near[xi] = min(max(xi - short // 2, 0), max(width - short, 0))
+        prediction[xi] = fit_d[best] + fit_slope[best] * (xi - (best + (window - 1) / 2))
+    rotated = q  # the projections are no longer needed: their memory takes the carriers in image phase
+    for n in range(n_carriers):
+        for s in range(n_starts):  # the prediction's first product, once per start
+            rotated[n, s] = fit_c[n, s] * phasors[n, s]
+        for xi in range(width):
+            best = chosen[xi]
+            prediction[xi] += 2 * (rotated[n, best] * np.conj(phasors[n, near[xi]]) * near0[n]).real
+            c = fit_c[n, best]
+            amp[n, xi] = 2 * np.sqrt(c.real ** 2 + c.imag ** 2) * flat[xi]  # not abs (hypot): 3x faster
+    for xi in range(width):
+        best = chosen[xi]
         ns = min(max(xi - short // 2, 0), width - short)
         observed = (cum_i[ns + short] - cum_i[ns]) / short
         f = flat[xi]
         unexplained[xi], var[xi], dc[xi] = fit_u[best] * f * f, fit_var[best] * f * f, fit_d[best] * f
-        misfit[xi] = abs(observed - prediction) / max(fit_d[best], 1e-6)
-        for n in range(n_carriers):
-            amp[n, xi] = 2 * abs(fit_c[best, n]) * f
+        misfit[xi] = abs(observed - prediction[xi]) / max(fit_d[best], 1e-6)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -558,18 +589,19 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], apex
     value at the end."""
     w = img.shape[1]
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
-    mean, peak, strength = np.empty(w), np.empty(w), np.empty(w)
+    mean, peak, strength, logs = np.empty(w), np.empty(w), np.empty(w), np.empty(w)
     for r in rows:
         t, q = windows[r], apexes[r]
         if 3 * t >= w:
             out[r] = 1.0
             continue
         for x in range(w):
+            logs[x] = np.log(max(img[r, x], floor))
+        for x in range(w):
             g = wt = 0.0
             if x >= t:
-                a, b = max(img[r, x], floor), max(img[r, x - t], floor)
                 wt = max(min(img[r, x], img[r, x - t]), floor)
-                g = wt * (np.log(a) - np.log(b))
+                g = wt * (logs[x] - logs[x - t])
             cum_g[x + 1], cum_w[x + 1] = cum_g[x] + g, cum_w[x] + wt
         for u in range(w):
             e = min(u + t, w)
@@ -578,7 +610,7 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], apex
             peak[x] = mean[x] - 0.5 * (mean[max(x - t, 0)] + mean[min(x + t, w - 1)])
             strength[x] = abs(peak[x])
         half = (t | 1) // 2
-        total = 0.0
+        total, level = 0.0, 1.0  # level = exp(total), recomputed only at a step
         for x in range(w):
             s = strength[x]
             if s >= threshold:
@@ -588,7 +620,8 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], apex
                 fall = (mean[x] - 0.5 * (mean[max(x - q, 0)] + mean[min(x + q, w - 1)])) * np.sign(peak[x])
                 if s >= largest and fall >= sharpness * s:
                     total += peak[x]
-            out[r, x] = np.exp(total)
+                    level = np.exp(total)
+            out[r, x] = level
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, threshold: float = STEP_THRESHOLD,
