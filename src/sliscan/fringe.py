@@ -315,6 +315,8 @@ def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32
     """`_segment_box_rows` along axis 1 (down the columns) for the given `columns`, without a
     transpose: blocks of columns are walked row by row (loops along a row vectorise), each run's
     sums restarting at its first pixel, so every box sum is the same float64 sum as along a row."""
+    if columns.size == 0:
+        return
     k_count, height, _ = values.shape
     start, end = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
     restart = np.empty((height, block), np.bool_)  # first pixel of a run, or in none
@@ -372,6 +374,8 @@ def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32
     """`_segment_box_rows` along axis 1 (down the columns) for the given `columns`, without a
     transpose: blocks of columns are walked row by row (loops along a row vectorise), each run's
     sums restarting at its first pixel, so every box sum is the same float64 sum as along a row."""
+    if columns.size == 0:
+        return
     k_count, height, _ = values.shape
     start, end = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
     total = np.empty((height, block))
