@@ -319,65 +319,6 @@ def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32
         return
     k_count, height, _ = values.shape
     start, end = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
-    restart = np.empty((height, block), np.bool_)  # first pixel of a run, or in none
-    low, high = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
-    total = np.empty((height, block))
-    for c0 in range(columns[0], columns[-1] + 1, block):
-        n = min(c0 + block, columns[-1] + 1) - c0
-        for y in range(height):  # first row of each pixel's run (-1: in no run)
-            for j in range(n):
-                here = coarse[y, c0 + j]
-                joins = y > 0 and start[y - 1, j] >= 0 and abs(here - coarse[y - 1, c0 + j]) <= max_jump
-                start[y, j] = -1 if not np.isfinite(here) else (start[y - 1, j] if joins else y)
-                restart[y, j] = not joins or start[y, j] < 0
-        for y in range(height - 1, -1, -1):  # one past its last row
-            for j in range(n):
-                same = y < height - 1 and start[y + 1, j] == start[y, j]
-                end[y, j] = -1 if start[y, j] < 0 else (end[y + 1, j] if same else y + 1)
-        for y in range(height):  # the box: rows low .. high - 1 of the running sums (low -1: from 0)
-            for j in range(n):
-                first = start[y, j]
-                lo = max(y - radius, first)
-                high[y, j] = min(y + radius + 1, end[y, j]) - 1
-                low[y, j] = lo - 1 if lo > first else -1
-        for k in range(k_count):
-            for j in range(n):
-                total[0, j] = values[k, 0, c0 + j]
-            for y in range(1, height):
-                for j in range(n):
-                    total[y, j] = (0.0 if restart[y, j] else total[y - 1, j]) + values[k, y, c0 + j]
-            for y in range(height):
-                for j in range(n):
-                    if start[y, j] < 0:
-                        out[k, y, c0 + j] = 0.0
-                    else:
-                        out[k, y, c0 + j] = total[high[y, j], j] - (total[low[y, j], j] if low[y, j] >= 0 else 0.0)
-
-
-def _segment_box(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int,
-                 max_jump: float, axis: int = 2) -> NDArray[np.float32]:
-    """`_segment_box_rows` along every row (`axis` 2) or `_segment_box_columns` down every
-    column (`axis` 1) of `values` ``(K, H, W)``, in threads: ``(K, H, W)`` float32."""
-    values, coarse = np.ascontiguousarray(values, dtype=np.float32), np.ascontiguousarray(coarse, dtype=np.float32)
-    out = np.empty_like(values)
-    if axis == 2:
-        over_rows(lambda rows: _segment_box_rows(values, coarse, radius, max_jump, rows, out), values.shape[1])
-    else:
-        over_rows(lambda columns: _segment_box_columns(values, coarse, radius, max_jump, columns, out),
-                  values.shape[2])
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int, max_jump: float,
-                         columns: NDArray[np.intp], out: NDArray[np.float32], block: int = 64) -> None:
-    """`_segment_box_rows` along axis 1 (down the columns) for the given `columns`, without a
-    transpose: blocks of columns are walked row by row (loops along a row vectorise), each run's
-    sums restarting at its first pixel, so every box sum is the same float64 sum as along a row."""
-    if columns.size == 0:
-        return
-    k_count, height, _ = values.shape
-    start, end = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
     total = np.empty((height, block))
     for c0 in range(columns[0], columns[-1] + 1, block):
         c1 = min(c0 + block, columns[-1] + 1)
