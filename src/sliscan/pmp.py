@@ -297,12 +297,12 @@ def _pmp_rows(frames: NDArray, cos_step: NDArray[np.float64], sin_step: NDArray[
     first, then finished quantity by quantity (loops along x the compiler vectorises)."""
     n_freq, steps = frequencies.size, cos_step.size
     width = frames.shape[2]
-    c, s, dc, turns = np.empty((n_freq, width)), np.empty((n_freq, width)), np.empty((n_freq, width)), \
+    c, s, sums, turns = np.empty((n_freq, width)), np.empty((n_freq, width)), np.empty((n_freq, width)), \
         np.empty((n_freq, width))
     scratch = np.empty((8, width))  # the row's per-pixel quantities
     energy, weakest, mean_dc, fitted, deviation, line, fringe, worst = scratch
     for r in rows:
-        c[:], s[:], dc[:], energy[:] = 0.0, 0.0, 0.0, 0.0
+        c[:], s[:], sums[:], energy[:] = 0.0, 0.0, 0.0, 0.0
         for f in range(n_freq):
             for n in range(steps):
                 plane = frames[f * steps + n, r]
@@ -310,12 +310,12 @@ def _pmp_rows(frames: NDArray, cos_step: NDArray[np.float64], sin_step: NDArray[
                     value = float(plane[x])
                     c[f, x] += cos_step[n] * value
                     s[f, x] += sin_step[n] * value
-                    dc[f, x] += value
+                    sums[f, x] += value
                     energy[x] += value * value
         weakest[:], mean_dc[:], fitted[:], deviation[:], worst[:] = np.inf, 0.0, 0.0, 0.0, 0.0
         for f in range(n_freq):
             for x in range(width):
-                a = dc[f, x] / steps
+                a = sums[f, x] / steps
                 power = c[f, x] * c[f, x] + s[f, x] * s[f, x]
                 weakest[x] = min(weakest[x], power)
                 mean_dc[x] += a / n_freq
@@ -323,7 +323,7 @@ def _pmp_rows(frames: NDArray, cos_step: NDArray[np.float64], sin_step: NDArray[
                 turns[f, x] = _atan2_turns(s[f, x], c[f, x])
         for f in range(n_freq):
             for x in range(width):
-                deviation[x] += (dc[f, x] / steps - mean_dc[x]) ** 2
+                deviation[x] += (sums[f, x] / steps - mean_dc[x]) ** 2
         for x in range(width):
             unit = turns[0, x] if frequencies[0] == 1 else turns[1, x] - turns[0, x]
             shifted = unit + 0.5 / lines
@@ -338,7 +338,7 @@ def _pmp_rows(frames: NDArray, cos_step: NDArray[np.float64], sin_step: NDArray[
         last = n_freq - 1
         for x in range(width):
             b_last = 2.0 / steps * math.sqrt(c[last, x] * c[last, x] + s[last, x] * s[last, x])
-            a_last = dc[last, x] / steps
+            a_last = sums[last, x] / steps
             visibility[r, x] = min(max(b_last / a_last, 0.0), 1.0) if a_last > 0 else 0.0
             coord[r, x], order[r, x], ambiguity[r, x] = line[x], int(fringe[x]), worst[x]
             modulation[r, x], brightness[r, x] = 2.0 / steps * math.sqrt(weakest[x]), mean_dc[x]
