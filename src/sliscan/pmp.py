@@ -387,9 +387,7 @@ def decode_pmp(frames: NDArray[np.float32], spec: PatternSpec, direction: str, *
     ProjectorMap
         `coord` with sub-pixel precision, `index` the fringe order of the finest frequency.
     """
-    block = len(spec.frequencies) * spec.steps
-    start = spec.directions.index(direction) * block
-    own = np.ascontiguousarray(frames[start:start + block])
+    own = np.ascontiguousarray(_direction_frames(frames, spec, direction).reshape(-1, *frames.shape[1:]))
     shape = own.shape[1:]
     coord, ambiguity, modulation, visibility, brightness, residual, spread = (
         np.empty(shape, np.float32) for _ in range(7))
