@@ -15,11 +15,11 @@ import pytest
 from sliscan import InputError, figures, reconstruct, sequences, simulate
 from sliscan._validate import read_image, write_images
 from sliscan.calibrate import (BoardView, Residuals, board_view, calibrate_board, calibrate_target,
-                               ellipse_centres, match_circles, triangulate_correspondences)
+                               ellipse_centres, match_circles, outline_centroids, triangulate_correspondences)
 from sliscan.cli import main
 from sliscan.formats.premat5 import read_g
 from sliscan.targets import Board, CircleTarget, bilinear, detect_circles, local_fit
-from sliscan.types import PatternSpec
+from sliscan.types import Device, PatternSpec
 
 REAL_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "procam-chessboard-graycode"
 NOISE_FREE = dict(supersample=1, full_well_e=None, bit_depth=None)
@@ -111,6 +111,26 @@ def test_circle_centres_are_the_ellipse_centres(small_rig, target_capture):
     assert len(found) == 18 and rms(nearest) < 0.06 and nearest.max() < 0.15
     bias = np.linalg.norm(ellipses - small_rig.calibration.camera.project(target.centres), axis=1)
     assert 0.15 < bias.min() and bias.max() < 0.3
+
+
+def test_outline_centroids_are_the_ellipse_centres_without_a_lens_and_move_with_one(small_rig):
+    """Through a pinhole the centroid of a circle's image is its ellipse's centre; a barrel lens
+    pulls an off-axis disc's centroid toward the image centre by more than it moves its centre's image."""
+    _, _, target = simulate.circle_target_scene()
+    camera = small_rig.calibration.camera
+    n = target.normals[0]
+    u = np.cross(n, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    axes = np.stack([u, np.cross(n, u)])
+    face = np.all(np.isclose(target.normals, n, atol=1e-9), axis=1)
+    centroids = outline_centroids(camera, target.centres[face], axes, target.radius_mm)
+    np.testing.assert_allclose(centroids, ellipse_centres(camera.matrix, target)[face], atol=1e-4)
+    k = camera.intrinsics
+    barrel = Device(camera.matrix, camera.size, intrinsics=k, distortion=(-0.2, 0.0, 0.0, 0.0, 0.0))
+    pulled = outline_centroids(barrel, target.centres[face], axes, target.radius_mm) - \
+        (barrel.project(target.centres[face]) + centroids - camera.project(target.centres[face]))
+    outward = barrel.project(target.centres[face]) - k[:2, 2]
+    assert np.all(np.einsum("nk,nk->n", pulled, outward) < 0)
 
 
 def test_ellipse_centres_fit_the_projected_outline(small_rig):

@@ -20,7 +20,10 @@ from sliscan.simulate import (
     Sphere,
     UniformAlbedo,
     Union,
+    _box_sum_cdf,
+    board_scene,
     camera_view,
+    circle_grid_scene,
     plane_scene,
     projector_rows,
     projector_view,
@@ -31,6 +34,7 @@ from sliscan.simulate import (
     tilted_plane_scene,
     virtual_rig,
 )
+from sliscan.targets import Board
 from sliscan.types import Calibration, Device
 
 CAMERA = (160, 120)
@@ -453,6 +457,51 @@ def test_albedo_fields():
 
 
 # ------------------------------------------------------------------------------ bad inputs
+
+
+class PointSampled:
+    """An albedo without `area_mean`: the renderer samples it at points."""
+
+    def __init__(self, albedo):
+        self.albedo = albedo
+
+    def __call__(self, xyz):
+        return self.albedo(xyz)
+
+
+@pytest.mark.parametrize("scene_and_albedo, ratio, worst", [
+    (lambda: board_scene(tilt_deg=(15.0, -20.0), inner_corners=(9, 7), square_mm=25.0), 0.25, 0.05),
+    (lambda: circle_grid_scene(Board("symmetric", (7, 5), 30.0, 9.0), tilt_deg=(20.0, 10.0))[:2], 0.25, 0.05),
+    (lambda: (sphere_scene(), CheckerAlbedo(square_mm=40.0)), 0.4, 0.15)], ids=["chessboard", "circles", "checker sphere"])
+def test_sharp_albedo_edges_cover_pixels_by_area(rig, scene_and_albedo, ratio, worst):
+    """One sample per pixel with the footprint's area coverage matches 8x8 point samples per
+    pixel (whose own aliasing is at most 1/64 of the contrast per edge pixel): the edges do not
+    alias, where one point sample per pixel is off by up to the whole contrast.  On the sphere
+    the limb's long footprints and the cubes' corners (the axes taken as independent) are
+    approximate: measured 0.33 of the point samples' RMS there, 0.12 at the 99.5th percentile."""
+    scene, albedo = scene_and_albedo()
+    plain = dict(full_well_e=None, bit_depth=None, camera_blur_px=0.0, projector_blur_px=0.0)
+    white = np.ones(rig.projector.shape)
+
+    def image(texture, supersample):
+        return render(rig, scene, white, Conditions(albedo=texture, supersample=supersample, **plain)).image
+
+    reference = image(PointSampled(albedo), 8)
+    area = np.abs(image(albedo, 1) - reference)
+    point = np.abs(image(PointSampled(albedo), 1) - reference)
+    assert np.nanmax(point) > 0.2
+    assert np.sqrt(np.nanmean(area**2)) < ratio * np.sqrt(np.nanmean(point**2))
+    assert np.nanpercentile(area, 99.5) < worst
+
+
+def test_footprint_coverage_of_one_edge_is_the_trapezoid():
+    """`_box_sum_cdf` against the share of a sampled parallelogram on one side of an edge."""
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0.1, 2.0, 20), rng.uniform(0.0, 2.0, 20)
+    z = rng.uniform(-2.0, 2.0, 20)
+    s, t = np.meshgrid(np.linspace(-0.5, 0.5, 801), np.linspace(-0.5, 0.5, 801))
+    sampled = [np.mean(ai * s + bi * t < zi) for ai, bi, zi in zip(a, b, z)]
+    np.testing.assert_allclose(_box_sum_cdf(z, a, b), sampled, atol=3e-3)
 
 
 def test_bad_projected_raises(rig):

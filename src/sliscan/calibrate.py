@@ -344,6 +344,8 @@ _MATCH_CANDIDATES = 12
 _MATCH_ANGLES = np.radians(np.arange(0.0, 360.0, 2.0))
 # Rounds of the perspective-bias correction of circle centres (the second changes < 0.001 px).
 _BIAS_ITERATIONS = 2
+# Outline points of a circle for the centroid of its image (`outline_centroids`).
+_OUTLINE_POINTS = 128
 
 
 def _whiten(points: FloatArray) -> FloatArray:
@@ -822,28 +824,48 @@ def _fit_board(objects: list[NDArray[np.float32]], camera: list[NDArray[np.float
                      stereo[5], stereo[6].ravel(), float(stereo[0]), std_c.ravel()[:4], std_p.ravel()[:4])
 
 
-def _circle_bias(board: Board, fit: _BoardFit, view: int) -> tuple[FloatArray, FloatArray]:
-    """Perspective bias ``(N, 2)`` px of one view's circle centres in the camera and in the projector.
+def outline_centroids(device: Device, centres: ArrayLike, axes: ArrayLike, radius: float) -> FloatArray:
+    """Area centroid ``(N, 2)`` px of each circle's image, through the device's lens.
 
-    Camera: the centre of each circle's image ellipse (`ellipse_centres`, with the view's pose
-    and the pinhole ``Kc``) minus the image of its centre.  Projector: its coordinates are read
-    at the camera's ellipse centre, i.e. at the board point that the camera sees there (back
-    through the board plane's homography), so its bias is that point's projector image minus
-    the circle centre's (with the projector's lens).  Lens distortion changes these few
-    hundredths of a pixel by about its own relative size (~1 %): neglected.
+    The circle ``centre + radius (cos a u + sin a v)`` (`axes` ``(2, 3)``: the unit vectors
+    ``u, v`` of its plane, mm) is projected at `_OUTLINE_POINTS` angles with `Device.project`
+    (pinhole, then lens distortion) and the centroid of that polygon is taken (shoelace).  That
+    is where a darkness-weighted detector (`sliscan.targets.detect_circle_grid`) finds a dark
+    disc: under a pinhole the image ellipse's centre (`ellipse_centres`, the perspective bias),
+    and through a lens also the lens's second-order pull on the disc's area (a barrel lens pulls
+    an off-axis disc's centroid toward the image centre: 0.002 px at 200 px from it on the
+    rig of benchmarks/distortion.py, enough to take the focal length 0.05 px off).
+    """
+    angles = 2 * np.pi * np.arange(_OUTLINE_POINTS) / _OUTLINE_POINTS
+    ring = np.c_[np.cos(angles), np.sin(angles)] @ np.asarray(axes, dtype=np.float64)  # (K, 3)
+    outline = device.project(np.asarray(centres, dtype=np.float64)[:, None, :] + radius * ring)  # (N, K, 2)
+    x, y = outline[..., 0], outline[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * yn - xn * y
+    area = 3 * cross.sum(axis=1)
+    return np.c_[((x + xn) * cross).sum(axis=1) / area, ((y + yn) * cross).sum(axis=1) / area]
+
+
+def _circle_bias(board: Board, fit: _BoardFit, view: int) -> tuple[FloatArray, FloatArray]:
+    """Bias ``(N, 2)`` px of one view's circle centres in the camera and in the projector.
+
+    Camera: where the detector finds each disc (`outline_centroids`, with the view's pose and
+    the camera's lens) minus the image of its centre.  Projector: its coordinates are read at
+    that camera point, i.e. at the board point that the camera sees there (undistorted, then
+    back through the board plane's homography), so its bias is that point's projector image
+    minus the circle centre's (both through the projector's lens).
     """
     layout = board.points().astype(np.float64)
     rotation = cv2.Rodrigues(fit.rc[view])[0]
     pose = np.c_[rotation, fit.tc[view].ravel()]
-    matrix = fit.kc @ pose
-    target = CircleTarget(layout, np.tile([0.0, 0.0, 1.0], (len(layout), 1)), board.radius)
-    ellipses = ellipse_centres(matrix, target)
-    camera_bias = ellipses - Device(matrix, (1, 1)).project(layout)
-    on_board = np.c_[ellipses, np.ones(len(layout))] @ np.linalg.inv(matrix[:, [0, 1, 3]]).T
+    camera = Device(fit.kc @ pose, (1, 1), intrinsics=fit.kc, distortion=fit.dc)
+    found = outline_centroids(camera, layout, np.eye(3)[:2], float(board.radius))
+    ideal = lens.undistort(found, fit.kc, fit.dc) if has_distortion(fit.dc) else found
+    on_board = np.c_[ideal, np.ones(len(layout))] @ np.linalg.inv(camera.matrix[:, [0, 1, 3]]).T
     seen = np.c_[on_board[:, :2] / on_board[:, 2:], np.zeros(len(layout))]
     projector_pose = fit.rotation @ pose + np.c_[np.zeros((3, 3)), fit.translation]
     projector = Device(fit.kp @ projector_pose, (1, 1), intrinsics=fit.kp, distortion=fit.dp)
-    return camera_bias, projector.project(seen) - projector.project(layout)
+    return found - camera.project(layout), projector.project(seen) - projector.project(layout)
 
 
 @overload

@@ -111,14 +111,30 @@ class MovedAlbedo:
 
     def __call__(self, xyz: ArrayLike) -> NDArray[np.float32]:
         """Albedo ``(N,)`` float32 at world points ``xyz`` ``(N, 3)`` in mm."""
-        xyz = np.asarray(xyz, dtype=np.float64)
+        return self._albedo(np.asarray(xyz, dtype=np.float64), None)
+
+    def area_mean(self, xyz: ArrayLike, footprint: ArrayLike) -> NDArray[np.float32]:
+        """Mean albedo ``(N,)`` over sample footprints ``(N, 2, 3)`` (mm; see
+        `sliscan.simulate.CheckerAlbedo.area_mean`) where `base` has ``area_mean``, else its
+        value at the points."""
+        return self._albedo(np.asarray(xyz, dtype=np.float64), np.asarray(footprint, dtype=np.float64))
+
+    def _albedo(self, xyz: NDArray[np.float64], footprint: NDArray[np.float64] | None) -> NDArray[np.float32]:
+        """`base` at the object-frame points (and footprints) of the object, at the world ones
+        on the background."""
         on_background = np.zeros(len(xyz), dtype=bool)
         for plane in self.background:
             on_background |= np.abs((xyz - plane.point) @ np.asarray(plane.normal)) < 1e-6
-        out = np.asarray(self.base(self.moved.to_object(xyz)), dtype=np.float32)  # type: ignore[operator]
+        turned = None if footprint is None else footprint @ self.moved.rotation
+        out = self._base(self.moved.to_object(xyz), turned)
         if on_background.any():
-            out[on_background] = np.asarray(self.base(xyz[on_background]), dtype=np.float32)  # type: ignore[operator]
+            out[on_background] = self._base(xyz[on_background], None if footprint is None else footprint[on_background])
         return out
+
+    def _base(self, xyz: NDArray[np.float64], footprint: NDArray[np.float64] | None) -> NDArray[np.float32]:
+        if footprint is None or not hasattr(self.base, "area_mean"):
+            return np.asarray(self.base(xyz), dtype=np.float32)  # type: ignore[operator]
+        return np.asarray(self.base.area_mean(xyz, footprint), dtype=np.float32)
 
 
 def split_background(scene: Surface) -> tuple[Surface, tuple[Plane, ...]]:

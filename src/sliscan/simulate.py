@@ -40,6 +40,7 @@ Graphics Tools 2(1), 1997. :doi:`10.1080/10867651.1997.10487468`
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -1094,6 +1095,68 @@ def _check_unit_range(**values: float) -> None:
             raise InputError(f"{name} must lie in [0, 1], got {v}")
 
 
+def _check_footprint(footprint: ArrayLike, count: int) -> NDArray[np.float64]:
+    out = np.asarray(footprint, dtype=np.float64)
+    if out.shape != (count, 2, 3):
+        raise InputError(f"footprint must have shape ({count}, 2, 3), got {out.shape}")
+    return out
+
+
+def _box_sum_cdf(z: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``P(A + B < z)`` for independent ``A ~ U(-a/2, a/2)``, ``B ~ U(-b/2, b/2)`` (widths >= 0).
+
+    How the area of a parallelogram footprint spreads along one direction: its two edge
+    vectors project onto the direction with lengths `a` and `b`, so the share of its area
+    below offset `z` from its centre is this trapezoid's CDF.  Zero widths give the step
+    ``z > 0`` (a point sample).  All arguments broadcast; any one length unit.
+
+    Examples
+    --------
+    >>> [round(float(_box_sum_cdf(np.array(z), np.array(2.0), np.array(1.0))), 4) for z in (-1.5, -0.5, 0.0, 1.0)]
+    [0.0, 0.25, 0.5, 0.9375]
+    """
+    wide, narrow = np.maximum(a, b), np.minimum(a, b)
+    half_sum, half_diff = (wide + narrow) / 2, (wide - narrow) / 2
+
+    def ramp2(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.square(np.maximum(x, 0.0))
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        trapezoid = (ramp2(z + half_sum) - ramp2(z + half_diff) - ramp2(z - half_diff) + ramp2(z - half_sum)) / (
+            2 * wide * narrow)
+        ramp = np.clip(z / wide + 0.5, 0.0, 1.0)
+    return np.where(narrow > 1e-6 * wide, trapezoid, np.where(wide > 0, ramp, (z > 0).astype(np.float64)))
+
+
+def _widths(footprint: NDArray[np.float64], direction: ArrayLike, unit: float) -> tuple[NDArray[np.float64], ...]:
+    """Lengths (in `unit` mm) of a footprint's two edge vectors ``(N, 2, 3)`` along `direction`
+    (unit vectors, ``(3,)`` or ``(N, 3)``)."""
+    along = np.abs(np.einsum("nek,nk->ne", footprint, np.broadcast_to(direction, (len(footprint), 3)))) / unit
+    return along[:, 0], along[:, 1]
+
+
+def _cell_mean(value: Callable[[NDArray[np.float64]], NDArray[np.float64]], u: NDArray[np.float64],
+               a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Mean of a function ``value(k)`` that is constant on unit cells ``[k, k + 1)`` over
+    footprints centred at `u` with projected widths `a`, `b` (cell units, capped at one cell,
+    so a footprint reaches no further than the neighbouring cells)."""
+    a, b = np.minimum(a, 1.0), np.minimum(b, 1.0)
+    k = np.floor(u)
+    below = _box_sum_cdf(k - u, a, b)
+    above = 1.0 - _box_sum_cdf(k + 1 - u, a, b)
+    return (1 - below - above) * value(k) + below * value(k - 1) + above * value(k + 1)
+
+
+def _on_board(k: NDArray[np.float64], count: int) -> NDArray[np.float64]:
+    """1 for the cells ``-1 <= k <= count - 1`` of a board with `count` inner corners along an axis."""
+    return ((k >= -1) & (k <= count - 1)).astype(np.float64)
+
+
+def _parity_sign(k: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(-1) ** k`` of whole numbers stored as floats."""
+    return 1.0 - 2.0 * np.mod(k, 2.0)
+
+
 @dataclass(frozen=True)
 class UniformAlbedo:
     """The same reflectance `value` in [0, 1] everywhere."""
@@ -1163,6 +1226,19 @@ class CheckerAlbedo:
         parity = np.floor(_check_xyz(xyz) / self.square_mm + 0.5).astype(np.int64).sum(axis=1) % 2
         return np.where(parity == 0, self.high, self.low).astype(np.float32)
 
+    def area_mean(self, xyz: ArrayLike, footprint: ArrayLike) -> NDArray[np.float32]:
+        """Mean albedo ``(N,)`` over the parallelograms ``xyz + s f[:, 0] + t f[:, 1]``,
+        ``s, t in [-1/2, 1/2]`` (`footprint` ``f`` ``(N, 2, 3)`` in mm): the sign ``(-1)**parity``
+        averaged along each axis, the axes taken as independent (exact for footprints aligned
+        with the cubes, and much finer than a cube)."""
+        xyz = _check_xyz(xyz)
+        footprint = _check_footprint(footprint, len(xyz))
+        sign = np.ones(len(xyz))
+        for axis in range(3):
+            a, b = _widths(footprint, np.eye(3)[axis], self.square_mm)
+            sign *= _cell_mean(_parity_sign, xyz[:, axis] / self.square_mm + 0.5, a, b)
+        return (self.low + (self.high - self.low) * (1 + sign) / 2).astype(np.float32)
+
 
 @dataclass(frozen=True, eq=False)
 class DiscAlbedo:
@@ -1187,6 +1263,19 @@ class DiscAlbedo:
         """Albedo ``(N,)`` float32 at world points ``xyz`` ``(N, 3)`` in mm."""
         distance, _ = scipy.spatial.cKDTree(self.centres).query(_check_xyz(xyz))
         return np.where(distance < self.radius_mm, self.low, self.high).astype(np.float32)
+
+    def area_mean(self, xyz: ArrayLike, footprint: ArrayLike) -> NDArray[np.float32]:
+        """Mean albedo ``(N,)`` over the parallelograms ``xyz + s f[:, 0] + t f[:, 1]``,
+        ``s, t in [-1/2, 1/2]`` (`footprint` ``f`` ``(N, 2, 3)`` in mm): the nearest circle's
+        edge taken as straight across each footprint (its curvature is second order)."""
+        xyz = _check_xyz(xyz)
+        footprint = _check_footprint(footprint, len(xyz))
+        distance, nearest = scipy.spatial.cKDTree(self.centres).query(xyz)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            radial = np.nan_to_num((xyz - self.centres[nearest]) / distance[:, None])
+        a, b = _widths(footprint, radial, 1.0)
+        dark = _box_sum_cdf(self.radius_mm - distance, np.minimum(a, self.radius_mm), np.minimum(b, self.radius_mm))
+        return (self.high + (self.low - self.high) * dark).astype(np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1228,6 +1317,25 @@ class BoardAlbedo:
         on_board = (u >= -1) & (u <= cols - 1) & (v >= -1) & (v <= rows - 1)
         dark = on_board & ((u + v) % 2 == 0)
         return np.where(dark, self.low, self.high).astype(np.float32)
+
+    def area_mean(self, xyz: ArrayLike, footprint: ArrayLike) -> NDArray[np.float32]:
+        """Mean albedo ``(N,)`` over the parallelograms ``xyz + s f[:, 0] + t f[:, 1]``,
+        ``s, t in [-1/2, 1/2]`` (`footprint` ``f`` ``(N, 2, 3)`` in mm).  A square is dark where
+        ``on_u on_v (1 + q_u q_v) / 2`` is 1 (``on``: within the board along that axis, ``q``: the
+        square's sign ``(-1)**k``); each factor is averaged along its own axis, the axes taken as
+        independent (exact for footprints aligned with the squares)."""
+        xyz = _check_xyz(xyz)
+        footprint = _check_footprint(footprint, len(xyz))
+        rel = xyz - self.origin
+        means = []
+        for axis, count in ((self.x_axis, self.inner_corners[0]), (self.y_axis, self.inner_corners[1])):
+            u = rel @ axis / self.square_mm
+            a, b = _widths(footprint, axis, self.square_mm)
+            on = functools.partial(_on_board, count=count)
+            means.append((_cell_mean(on, u, a, b), _cell_mean(lambda k: on(k) * _parity_sign(k), u, a, b)))
+        (on_u, signed_u), (on_v, signed_v) = means
+        dark = (on_u * on_v + signed_u * signed_v) / 2
+        return (self.high + (self.low - self.high) * dark).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -1402,6 +1510,7 @@ class _Hits:
     dist: NDArray[np.float64]  # distance to the projector centre, mm
     reached: NDArray[np.bool_]  # projector light can reach it (within the padded frustum)
     inside: NDArray[np.bool_]  # within the nominal projector image
+    pixel: NDArray[np.float64]  # (N, 2) the sample's camera pixel position (x, y)
 
 
 def _trace(rig: Rig, scene: Surface, xc: NDArray[np.float64], yc: NDArray[np.float64], pad: int) -> _Hits:
@@ -1432,7 +1541,7 @@ def _trace(rig: Rig, scene: Surface, xc: NDArray[np.float64], yc: NDArray[np.flo
         start = points[reached] + _SHADOW_OFFSET_MM * normal[reached]
         blocked, _ = scene.intersect(start, rig.projector.centre - start)
         reached[reached] = ~(blocked < 1.0)
-    return _Hits(points, normal, surface, proj, cos, dist, reached, within(0.0))
+    return _Hits(points, normal, surface, proj, cos, dist, reached, within(0.0), np.stack([xc, yc], axis=-1))
 
 
 def _projector_pad(conditions: Conditions) -> int:
@@ -1646,7 +1755,7 @@ class TracedScene:
         self._chunks = []
         for rows in _row_chunks(rig, self._samples):
             hits = _trace_rows(rig, scene, rows, offsets, self._pad)
-            self._chunks.append((rows, hits, _albedo(hits, self.conditions)))
+            self._chunks.append((rows, hits, _albedo(rig.camera, hits, self.conditions)))
 
     def signal(self, projected: ArrayLike) -> NDArray[np.float32]:
         """Camera signal ``(H, W)`` float32 (full scale 1) before the sensor: no noise, no clipping."""
@@ -1684,7 +1793,7 @@ def _render_signals(
 
     for rows in _row_chunks(rig, len(offsets)):
         hits = _trace_rows(rig, scene, rows, offsets, pad)
-        alb = _albedo(hits, cond)
+        alb = _albedo(rig.camera, hits, cond)
         n_pix = len(hits.surface) // len(offsets)
         per_pixel = (n_pix, len(offsets))
         for signal, (light, _) in zip(signals, lights):
@@ -1727,13 +1836,59 @@ def _camera_blur(signal: NDArray[np.float32], cond: Conditions) -> NDArray[np.fl
     return scipy.ndimage.gaussian_filter(signal, cond.camera_blur_px, mode="nearest", truncate=4.0)
 
 
-def _albedo(hits: _Hits, conditions: Conditions) -> NDArray[np.float32]:
-    """Albedo of each ray sample (0 where no surface), checked to lie in [0, 1]."""
+def _albedo(camera: Pinhole, hits: _Hits, conditions: Conditions) -> NDArray[np.float32]:
+    """Albedo of each ray sample (0 where no surface), checked to lie in [0, 1].
+
+    An albedo with sharp edges that has an ``area_mean(xyz, footprint)`` method gives its mean
+    over the sample's footprint (`_footprints`), so an edge covers a pixel by area, as light
+    does on a sensor; others give their value at the hit point.
+    """
     albedo = np.zeros(len(hits.surface), dtype=np.float32)
-    albedo[hits.surface] = conditions.albedo(hits.points[hits.surface])
+    on = hits.surface
+    texture = conditions.albedo
+    if hasattr(texture, "area_mean"):
+        footprint = _footprints(camera, hits.points[on], hits.normal[on], hits.pixel[on], 1 / conditions.supersample)
+        albedo[on] = texture.area_mean(hits.points[on], footprint)
+    else:
+        albedo[on] = texture(hits.points[on])
     if albedo.min(initial=0) < 0 or albedo.max(initial=0) > 1:
         raise InputError(f"albedo values must lie in [0, 1], got [{albedo.min():g}, {albedo.max():g}]")
     return albedo
+
+
+def _footprints(camera: Pinhole, points: NDArray[np.float64], normals: NDArray[np.float64],
+                pixels: NDArray[np.float64], step: float) -> NDArray[np.float64]:
+    """Where each sample's square of side `step` camera pixels lands on the surface.
+
+    Parameters
+    ----------
+    camera : Pinhole
+    points, normals : (N, 3) float64 arrays
+        The samples' hit points (mm) and surface normals.
+    pixels : (N, 2) float64 array
+        The samples' pixel positions ``(x, y)``.
+    step : float
+        The side of a sample's square, in pixels (``1 / supersample``).
+
+    Returns
+    -------
+    footprint : (N, 2, 3) float64 array
+        The square's edge vectors along image x and y on the tangent plane at each point, in
+        mm: from the point to where the ray `step` pixels further along x (or y) meets that
+        plane, through the camera's lens (a forward difference: the footprint's size only
+        shapes the ramp of coverage across an edge, not where the edge lies).  Zero where the
+        plane is seen edge-on.
+    """
+    centre = camera.centre
+    reach = _dot(normals, points - centre)
+    footprint = np.empty((len(points), 2, 3))
+    for axis in range(2):
+        moved = pixels + step * np.eye(2)[axis]
+        rays = camera.rays(moved[:, 0], moved[:, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            footprint[:, axis] = centre + rays * (reach / _dot(normals, rays))[:, None] - points
+    footprint[~np.isfinite(footprint).all(axis=(1, 2))] = 0.0
+    return footprint
 
 
 def _shade(

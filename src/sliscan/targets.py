@@ -143,6 +143,11 @@ def _moment_ellipse(xs: FloatArray, ys: FloatArray) -> tuple[float, float]:
     return 2.0 * float(np.sqrt(eig[1])), 2.0 * float(np.sqrt(max(eig[0], 0.0)))
 
 
+def _distance_to(mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Euclidean distance (px) of every pixel to the nearest pixel of `mask` (0 on it)."""
+    return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
 def _dark_centroid(image: NDArray[np.float32], blob: NDArray[np.bool_], grow: int,
                    exclude: NDArray[np.bool_] | None = None) -> tuple[float, float] | None:
     """Darkness-weighted centroid of a dark blob, against the background fitted around it.
@@ -150,17 +155,19 @@ def _dark_centroid(image: NDArray[np.float32], blob: NDArray[np.bool_], grow: in
     The background is a plane fitted to a ring of pixels around the blob; the weight of a pixel
     is ``1 - I / background`` (clipped at 0) over the blob grown by `grow` pixels, which holds
     the blurred edge.  For a dark ellipse of uniform albedo the weight is uniform inside and the
-    centroid is the ellipse's centre, unchanged by a symmetric blur.  Pixels in `exclude` (other
-    dark blobs nearby, grown likewise) are neither background nor weighted.  None: no bright ring.
+    centroid is the ellipse's centre, unchanged by a symmetric blur.  Other dark blobs nearby
+    (`exclude`, which must hold every blob within `grow` of the ring): the ring keeps `grow`
+    pixels away from them, and where two grown blobs would overlap the pixels are weighted only
+    on this blob's side of the middle, so that a crowded grid's blurred edges are cut short on
+    no side.  None: no bright ring.
     """
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
-    inner = cv2.dilate(blob.astype(np.uint8), kernel).astype(bool)
-    outer = cv2.dilate(inner.astype(np.uint8), kernel).astype(bool)
-    ring = outer & ~inner
-    if exclude is not None:
-        others = cv2.dilate(exclude.astype(np.uint8), kernel).astype(bool)
-        ring &= ~others
-        inner &= ~others | blob
+    near = _distance_to(blob)
+    inner = near <= grow
+    ring = (near > grow) & (near <= 2 * grow)
+    if exclude is not None and exclude.any():
+        other = _distance_to(exclude)
+        ring &= other > grow
+        inner &= near <= other
     ry, rx = np.nonzero(ring)
     if len(rx) < 3:
         return None
@@ -184,7 +191,7 @@ def _blob_centre(image: NDArray[np.float32], labels: NDArray[np.int32], label: i
     x0, y0, bw, bh, area = (int(v) for v in box[:5])
     h, w = labels.shape
     grow = 2 + int(np.ceil(0.25 * np.sqrt(area / np.pi)))
-    pad = 2 * grow + 1
+    pad = 3 * grow + 2  # the ring reaches 2 grow out; any blob within grow of it must be seen
     sy = slice(max(y0 - pad, 0), min(y0 + bh + pad, h))
     sx = slice(max(x0 - pad, 0), min(x0 + bw + pad, w))
     window = labels[sy, sx]
@@ -371,7 +378,9 @@ def detect_circle_grid(image: ArrayLike, pattern_size: tuple[int, int], *, asymm
         return None
     coarse = coarse.reshape(-1, 2).astype(np.float64)
     spacing = float(np.median(scipy.spatial.cKDTree(coarse).query(coarse, k=2)[0][:, 1]))
-    half = max(4, int(np.ceil(0.75 * spacing)))
+    # The window holds the circle, its background ring and the neighbours next to that ring
+    # (`_blob_centre`): a neighbour cut off by the window would leak its blurred edge into the ring.
+    half = int(np.ceil(1.5 * spacing)) + 8
     refined = coarse.copy()
     for k, centre in enumerate(coarse):
         better = _refine_circle(img, centre, half)
