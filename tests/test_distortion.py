@@ -128,19 +128,15 @@ def test_board_calibration_recovers_the_lenses(lens_rig, sphere, estimated):
     frame is its world (the camera sits at the origin), so the truth is compared with the
     estimate directly, with no fitted alignment.  That frame's orientation rests on the
     camera's principal point and the scale on its focal length, which a 30-degree lens pins
-    down poorly: OpenCV's standard deviation of the principal point is 5-8 times the error of
-    the points, here 0.018 px at 3x3 samples per pixel (0.09 px at one sample, whose aliased
-    discs also bias the focal length by 1.6 px: a 1.1 mm error at 800 mm).  Measured with these
-    12 poses: principal point 0.058 px off, focal lengths 0.015 px; the true points reproject
-    within 0.059 px (camera) and 0.056 px (projector), the issue's 0.1 px; the sphere's RMS
-    error is 0.099 mm against the true calibration's 0.088 mm (1.13 times; the issue asks 1.1).
-    This is a good draw, not a margin: the same poses turned by 7.4 degrees give a principal
-    point 0.12 px and focal lengths 0.37 px off (0.12 / 0.21 px, 3.9 times), 24 poses 0.05 and
-    0.19 px (0.05 / 0.10 px, 2.2 times): the absolute figures need the focal length within
-    ~0.03 px (3e-5 of it; 0.2 px is 0.18 mm at 800 mm) and the principal point within ~0.04
-    px, i.e. points good to a few thousandths of a pixel.  Asserted: 0.1 px and 1.3 times for
-    this pose set; after the best rigid alignment (`rigid_alignment`, shape only) the sphere is
-    as good as the truth's (0.075 mm each).
+    down poorly: the absolute figures need the focal length within ~0.03 px (3e-5 of it; 0.2
+    px is 0.18 mm at 800 mm) and the principal point within ~0.04 px, i.e. circle centres good
+    to a few thousandths of a pixel, which the area-rendered discs and `outline_centroids`
+    give (0.0026 px on this grid).  Measured with these 12 poses (benchmarks/distortion.py,
+    ninth session): principal point 0.010 px off (OpenCV's std 0.011 px), focal lengths
+    0.028 px; the true points reproject within 0.010 px (camera) and 0.012 px (projector), the
+    issue's 0.1 px; the sphere's RMS error is 0.091 mm against the true calibration's 0.088
+    mm (1.04 times; the issue asks at most 1.1, asserted).  After the best rigid alignment
+    (`rigid_alignment`, shape only) the sphere is as good as the truth's (0.076 mm each).
     """
     maps = sequences.decode_frames(sphere.images, SCAN_SPEC)
     ok = on_sphere(sphere.truth)
@@ -157,14 +153,14 @@ def test_board_calibration_recovers_the_lenses(lens_rig, sphere, estimated):
     for name, points in scans.items():
         rotation, translation = rigid_alignment(points[ok], truth)
         errors[name] = (rms(points[ok] - truth), rms(points[ok] @ rotation.T + translation - truth))
-    assert errors["estimated"][0] <= 1.3 * errors["true"][0], errors
+    assert errors["estimated"][0] <= 1.1 * errors["true"][0], errors
     assert errors["estimated"][1] <= 1.1 * errors["true"][1], errors
     for device in ("camera", "projector"):
         seen = getattr(lens_rig.calibration, device).project(truth)
-        assert rms(getattr(estimated, device).project(truth) - seen) < 0.1, device
+        assert rms(getattr(estimated, device).project(truth) - seen) < 0.05, device
     principal = estimated.camera.intrinsics[:2, 2] - lens_rig.calibration.camera.intrinsics[:2, 2]
     std = estimated.extra["intrinsics_std_px"]["camera"]
-    assert np.hypot(*principal) < 0.1 and max(std["cx"], std["cy"]) < 0.15, (principal, std)
+    assert np.hypot(*principal) < 0.05 and max(std["cx"], std["cy"]) < 0.05, (principal, std)
     assert estimated.extra["board"] == {"kind": "symmetric", "size": [15, 11], "spacing": 20.0, "radius": 6.0}
     # f r**2 sin(2 tilt) / (2 Z**2) = 0.023 px at 20 degrees and 800 mm, 6 mm circles
     assert 0.01 < estimated.extra["perspective_bias_px"] < 0.05
