@@ -58,7 +58,7 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
     if not quick:
         # issue 8's variant that lost: the phase channel on the lowest carriers, the bits above
         base = patterns.phase_spec(projector)
-        specs.update({name: patterns.phase_spec(projector) for name in PHASE_VARIANTS})
+        specs.update({name: specs[source] for name, (source, _) in DECODER_VARIANTS.items()})
         specs["4-bit + phase on low carriers"] = base.with_(carriers=tuple(sorted(base.phase_carriers + (base.carriers[0],), reverse=True)),
                                                             phase_carriers=tuple(sorted(base.carriers)[:3]))
         # more of the drive on the phase carriers: each bit weaker (b_p keeps the drive in range)
@@ -73,14 +73,18 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
     return specs
 
 
-#: Decoder variants of the phase pattern tried for issue 8 (Scanner keyword arguments), each a
-#: row of the table: what the default's parts are worth.
-PHASE_VARIANTS = {
-    "sliscan 4-bit + phase (no smoothing)": dict(fringe_options=dict(smooth=False)),
-    "sliscan 4-bit + phase (no rescue)": dict(fringe_options=dict(rescue=False)),
-    "sliscan 4-bit + phase (no extension)": dict(fringe_options=dict(extend=False)),
-    "sliscan 4-bit + phase (no unmixing)": dict(fringe_options=dict(unmix=False)),
-    "sliscan 4-bit + phase (strict Gray code)": dict(decode_options=dict(min_snr=3.0, min_confidence=0.1)),
+#: Decoder variants (Scanner keyword arguments) of a pattern, each a row of the table on that
+#: pattern's captures: what the default decoder's parts are worth.
+DECODER_VARIANTS = {
+    "sliscan 4-bit (per-pixel decisions)": ("sliscan 4-bit", dict(decode_options=dict(order=False))),
+    "sliscan 4-bit + phase (per-pixel decisions)": ("sliscan 4-bit + phase", dict(decode_options=dict(order=False))),
+    "sliscan 4-bit + phase (no smoothing)": ("sliscan 4-bit + phase", dict(fringe_options=dict(smooth=False))),
+    "sliscan 4-bit + phase (no rescue)": ("sliscan 4-bit + phase", dict(fringe_options=dict(rescue=False))),
+    "sliscan 4-bit + phase (no extension)": ("sliscan 4-bit + phase", dict(fringe_options=dict(extend=False))),
+    "sliscan 4-bit + phase (no unmixing)": ("sliscan 4-bit + phase", dict(fringe_options=dict(unmix=False))),
+    "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
+                                                 dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
+    "thesis 4-bit (decided by order)": ("thesis 4-bit", dict(decode_options=dict(order=True))),
 }
 
 
@@ -127,13 +131,13 @@ def main() -> None:
             scene = SCENES[scene_name]()
             for albedo in args.albedo.split(","):
                 for seed in range(args.seeds):
-                    key = "sliscan 4-bit + phase" if name in PHASE_VARIANTS else name  # same frames
+                    key = DECODER_VARIANTS[name][0] if name in DECODER_VARIANTS else name  # same frames
                     capture = render_cached(args.captures, f"{key}_{scene_name}_{albedo}_{seed}_{args.camera}",
                                             lambda: simulate.render(rig, scene, image, conditions(albedo, seed)))
                     for method in args.methods.split(","):
                         t0 = time.perf_counter()
                         result = Scanner(spec, rig.calibration, method=method,
-                                         **PHASE_VARIANTS.get(name, {})).scan(capture.image)
+                                         **DECODER_VARIANTS.get(name, (name, {}))[1]).scan(capture.image)
                         seconds = time.perf_counter() - t0
                         acc = accuracy(result, capture.truth, spec, rig.calibration)
                         row = dict(pattern=name, decoder=method, scene=scene_name, albedo=albedo, seed=seed,

@@ -229,9 +229,10 @@ def _pilot_spec():
     (patterns.default_spec, "window", "checker", {"stripe_borders": False, "min_snr": 0.0, "neighbour_radius": 0}),
 ])
 def test_compiled_decoder_equals_the_numpy_form(make_spec, method, albedo, options):
-    """Every output of `decode` (stripes, masks, confidence, levels) is exactly what the plain
-    numpy decoder (`decode_reference`, sliscan's before the kernels) computes on the same
-    envelopes: the kernels replicate its float32/float64 arithmetic, so nothing may differ."""
+    """Every output of `decode`'s per-pixel decisions (stripes, masks, confidence, levels) is
+    exactly what the plain numpy decoder (`decode_reference`, sliscan's before the kernels)
+    computes on the same envelopes: the kernels replicate its float32/float64 arithmetic, so
+    nothing may differ.  (The decisions by order are tested in test_stripe_order.py.)"""
     from decode_reference import decode as decode_reference
 
     spec = make_spec((1024, 768))
@@ -239,7 +240,7 @@ def test_compiled_decoder_equals_the_numpy_form(make_spec, method, albedo, optio
                                baseline_axis="vertical" if spec.orientation == "rows" else "horizontal")
     capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), realistic(4, albedo))
     demod, _ = demodulate(capture.image, spec, method=method)
-    fast, reference = decode(demod, spec, **options), decode_reference(demod, spec, **options)
+    fast, reference = decode(demod, spec, order=False, **options), decode_reference(demod, spec, **options)
     for name in ("stripe", "proj_map", "valid", "lit", "confidence", "levels"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(reference, name), err_msg=name)
     assert 0.15 < fast.valid.mean() < 0.95  # a real decode (sphere and background), not an empty one

@@ -1,0 +1,315 @@
+"""Gray code decoding along the phase direction, by the order the stripes come in.
+
+`sliscan.decode` decides each pixel's bits on their own.  A pixel's evidence can be weak and
+still leave no doubt in context: on a surface the stripes follow each other in order along
+every camera line in the phase direction (camera `y` for the ``rows`` orientation), stripe
+``s`` after ``s - 1``, the code changing at a few borders per stripe height, jumping only at
+depth edges and shadows.  So each such line is decoded as a whole, by dynamic programming
+(a hidden Markov chain over the stripes and a "dark" state, max-product):
+
+* **Evidence** (`emission`): for every pixel and stripe, how badly the pixel's bit levels
+  (`Decoded.levels`: 0 off, 1 on) fit the stripe's code, seen with an unknown gain ``g``: the
+  light that reaches a surface turning away from the projector falls with the angle of
+  incidence while the ambient part of the DC (which the levels are relative to) does not, so
+  the "on" levels of a pixel near a limb read 0.3 instead of 1 with a perfectly clear code.
+  The gain is fitted per stripe (the mean of its on bits' levels) with a log-normal prior
+  around 1; the deviations count in units of the pixel's noise (`Demodulated.noise`) plus a
+  model error proportional to the gain, each bit's cost capped (one corrupted bit costs a
+  bounded amount).  The dark state has no carrier: cheap where `decode._lit` found none,
+  costly where it did.
+* **Order** (the transition costs): staying costs nothing, the next stripe along the order
+  `step`, the previous one `back`, any other (a depth edge) `jump`, entering or leaving the
+  dark state `dark`; in nats.
+* **Decision**: each pixel takes the label of the best path through it; its margin is how
+  much worse (in nats) the best path through any other label at that pixel is (max-marginals
+  from a forward and a backward pass).  A small margin means the context does not settle it.
+
+The direction the stripe numbers grow along the lines is the rig's (a camera upside down
+reverses it); `stripe_direction` reads it from the per-pixel decisions.
+
+Lines in threads (compiled kernels over blocks of lines, each line's states in a vectorised
+inner loop).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from sliscan._threads import over_rows
+from sliscan.patterns import code_bits, stripe_codes
+from sliscan.types import PatternSpec
+
+
+@dataclass(frozen=True)
+class OrderCosts:
+    """The costs of `decode_by_order`, in nats (negative log probabilities).
+
+    Attributes
+    ----------
+    step, back, jump, dark : float
+        Transition costs from one pixel to the next along the phase direction: to the next
+        stripe in the order, to the previous one, to any other stripe, into or out of the dark
+        state.  Staying costs 0.
+    model_error : float
+        Standard deviation of a bit level's departure from its code, as a fraction of the
+        pixel's gain (blur at stripe borders, crosstalk, leakage), added to the noise.
+    bit_cap : float
+        The most one bit's misfit can cost.
+    gain_sd : float
+        Standard deviation of the natural log of the gain below 1 (above 1: half of it).
+    dark_lit, unlit : float
+        Cost of the dark state on a pixel where a carrier was detected (`Decoded.lit`), and of
+        any stripe where none was.
+    """
+
+    step: float = 4.0
+    back: float = 12.0
+    jump: float = 15.0
+    dark: float = 8.0
+    model_error: float = 0.15
+    bit_cap: float = 6.0
+    gain_sd: float = 1.0
+    dark_lit: float = 10.0
+    unlit: float = 10.0
+
+
+def stripe_direction(stripe: NDArray[np.integer], valid: NDArray[np.bool_], spec: PatternSpec, *,
+                     reach: int = 4) -> int:
+    """+1 if stripe numbers grow with the camera coordinate along the phase direction (camera
+    `y` for ``rows``, `x` for ``columns``), -1 if they fall, 0 if the decisions do not tell.
+
+    Counts the pairs of valid pixels `reach` apart along that direction whose stripes differ
+    by one; a direction needs three times the pairs of the other (and 100 of them).
+    """
+    s = np.where(valid, stripe, -1).astype(np.int32)
+    s = s if spec.orientation == "rows" else s.T
+    a, b = s[:-reach], s[reach:]
+    both = (a >= 0) & (b >= 0)
+    up = int(np.count_nonzero(both & (b - a == 1)))
+    down = int(np.count_nonzero(both & (a - b == 1)))
+    if up >= 100 and up >= 3 * down:
+        return 1
+    if down >= 100 and down >= 3 * up:
+        return -1
+    return 0
+
+
+#: Fast-math flags of the kernels: everything but "no NaNs" and "no infinities" (the recursion
+#: pads with +inf), so that their loops vectorise.
+FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+@numba.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
+def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDArray[np.float32], lit: NDArray[np.bool_],
+             on: NDArray[np.float32], costs: NDArray[np.float32], y: int, x0: int, n: int, out: NDArray[np.float32],
+             gain: NDArray[np.float32]) -> None:
+    """The evidence of the pixels ``(y, x0 .. x0 + n - 1)`` against every state, into the first
+    `n` columns of `out` ``(S + 1, m)``, m >= n (nats): each stripe's misfit, then the dark
+    state's; the other columns get 0 (no evidence).
+
+    A stripe's code (`on` ``(K, S)``: 1 where bit `n` of stripe `s` is on) is fitted with the
+    gain ``g`` = the mean of its on bits' levels (at least 1e-3); each bit costs ``(level - g on)
+    ** 2 / (2 (sd ** 2 + (model_error g) ** 2))``, at most `bit_cap` (``sd = noise[y, x] /
+    span[n]``), and the gain has the prior ``(g - 1) ** 2 / (2 s ** 2 g)`` below 1 (``s`` =
+    `gain_sd`: near ``(ln g / s) ** 2 / 2`` without a logarithm) and ``(g - 1) ** 2 / (2 (s /
+    2) ** 2)`` above.  A pixel with a non-finite level or noise gives no evidence (0 for every
+    state).  `costs` as in `_order_columns`; `gain` ``(m,)`` is working memory.  The innermost
+    loops run along the pixels, so they vectorise."""
+    bits, states = on.shape
+    x1 = x0 + n
+    out[:, n:] = 0
+    model2, cap, prior = costs[4] * costs[4], costs[5], np.float32(0.5) / (costs[6] * costs[6])
+    for s in range(states):
+        row = out[s]
+        gain[:] = 0
+        count = np.float32(0)
+        for k in range(bits):
+            if on[k, s] > 0:
+                count += 1
+                level = levels[k, y, x0:x1]
+                for i in range(n):
+                    gain[i] += level[i]
+        for i in range(n):
+            g = max(gain[i] / max(count, np.float32(1)), np.float32(1e-3))
+            gain[i] = g
+            d = g - np.float32(1)
+            row[i] = prior * d * d / g if g < 1 else np.float32(4) * prior * d * d
+            row[i] += np.float32(0) if lit[y, x0 + i] else costs[8]
+        for k in range(bits):
+            level, sd = levels[k, y, x0:x1], noise[y, x0:x1]
+            o, inv = on[k, s], np.float32(1) / span[k]
+            for i in range(n):
+                e = level[i] - o * gain[i]
+                v = sd[i] * inv
+                row[i] += min(e * e / (np.float32(2) * (v * v + model2 * gain[i] * gain[i])), cap)
+    for i in range(n):
+        out[states, i] = costs[7] if lit[y, x0 + i] else np.float32(0)
+        usable = np.isfinite(noise[y, x0 + i])
+        for k in range(bits):
+            usable = usable and np.isfinite(levels[k, y, x0 + i])
+        if not usable:
+            out[:, i] = 0
+
+
+#: Lines of `_order_columns`' blocks: their evidence is computed row by row (contiguous reads),
+#: then each line is decoded from it.
+BLOCK = 32
+
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=FAST, error_model="numpy")
+def _relax(prev: NDArray[np.float32], here: NDArray[np.float32], step: np.float32, back: np.float32,
+           jump: np.float32, to_dark: np.float32, best: NDArray[np.float32], out: NDArray[np.float32]) -> None:
+    """One step of the max-product recursion for a block of lines at once, into `out`
+    ``(S + 3, n)``: the best cost of arriving at each state from `prev` (laid out as `out`:
+    +inf, the S stripes in order, +inf, the dark state) plus `here` ``(S + 1, n)`` (the states'
+    evidence, stripes then dark).  Each line's entries are shifted so their smallest is 0
+    (costs stay small in float32; every margin is a difference within one line's row, which the
+    shift leaves alone).  `best` ``(n,)`` is working memory.  Loops run along the lines."""
+    states = here.shape[0] - 1
+    dark = states + 2
+    n = here.shape[1]
+    best[:] = np.inf
+    for s in range(1, states + 1):
+        for i in range(n):
+            best[i] = min(best[i], prev[s, i])
+    for i in range(n):  # dark first: `best` then becomes the recursion's base
+        out[dark, i] = min(prev[dark, i], best[i] + to_dark) + here[states, i]
+        best[i] = min(best[i] + jump, prev[dark, i] + to_dark)
+    for s in range(1, states + 1):
+        for i in range(n):
+            out[s, i] = min(min(prev[s, i], best[i]), min(prev[s - 1, i] + step, prev[s + 1, i] + back)) + here[s - 1, i]
+    best[:] = out[dark]
+    for s in range(1, states + 1):
+        for i in range(n):
+            best[i] = min(best[i], out[s, i])
+    for s in range(1, states + 1):
+        for i in range(n):
+            out[s, i] -= best[i]
+    for i in range(n):
+        out[dark, i] -= best[i]
+
+
+@numba.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
+def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDArray[np.float32],
+                   lit: NDArray[np.bool_], on: NDArray[np.float32], costs: NDArray[np.float32], blocks: NDArray[np.intp],
+                   stripe: NDArray[np.int16], margin: NDArray[np.float32], misfit: NDArray[np.float32]) -> None:
+    """`decode_by_order` for the given blocks of `BLOCK` columns of ``(K, H, W)`` `levels` (the
+    phase direction along axis 1, stripes numbered in the order they come down it); writes
+    `stripe` (-1: dark), `margin` and `misfit` ``(H, W)``.  The columns of a block are decoded
+    side by side (the innermost loops run across them).
+
+    `costs`: step, back, jump, dark, model error, bit cap, gain sd, dark on a lit pixel,
+    stripe on an unlit one (`OrderCosts`); `on` ``(K, S)``."""
+    bits, h, w = levels.shape
+    states = on.shape[1]
+    dark = states + 2
+    step, back, jump, to_dark = costs[0], costs[1], costs[2], costs[3]
+    cost = np.empty((h, states + 1, BLOCK), dtype=np.float32)
+    # forward and backward messages laid out as +inf, stripes, +inf, dark (see `_relax`)
+    fwd = np.full((h, states + 3, BLOCK), np.inf, dtype=np.float32)
+    bwd = np.full((h, states + 3, BLOCK), np.inf, dtype=np.float32)
+    ahead = np.full((states + 3, BLOCK), np.inf, dtype=np.float32)
+    nothing = np.zeros((states + 1, BLOCK), dtype=np.float32)
+    work = np.empty(BLOCK, np.float32)
+    first, second = np.empty(BLOCK, np.float32), np.empty(BLOCK, np.float32)
+    label = np.empty(BLOCK, np.int32)
+    for block in blocks:
+        x0 = block * BLOCK
+        n = min(x0 + BLOCK, w) - x0  # the columns of a block beyond the image have no evidence
+        for y in range(h):
+            emission(levels, noise, span, lit, on, costs, y, x0, n, cost[y], work)
+        fwd[0, 1:states + 1] = cost[0, :states]
+        fwd[0, dark] = cost[0, states]
+        for y in range(1, h):
+            _relax(fwd[y - 1], cost[y], step, back, jump, to_dark, work, fwd[y])
+        bwd[h - 1, 1:states + 1] = 0
+        bwd[h - 1, dark] = 0
+        for y in range(h - 2, -1, -1):
+            # what lies below row y, its evidence included, relaxed against the order running
+            # upwards (the next stripe down is the previous one up); the messages exclude row
+            # y's own evidence
+            below, evidence = bwd[y + 1], cost[y + 1]
+            for s in range(states):
+                for i in range(BLOCK):
+                    ahead[s + 1, i] = below[s + 1, i] + evidence[s, i]
+            for i in range(BLOCK):
+                ahead[dark, i] = below[dark, i] + evidence[states, i]
+            _relax(ahead, nothing, back, step, jump, to_dark, work, bwd[y])
+        for y in range(h):
+            first[:], second[:], label[:] = np.inf, np.inf, states
+            forward, backward = fwd[y], bwd[y]
+            for s in range(states + 1):
+                k = s + 1 if s < states else dark
+                for i in range(BLOCK):
+                    total = forward[k, i] + backward[k, i]
+                    better = total < first[i]
+                    second[i] = first[i] if better else min(second[i], total)
+                    label[i] = s if better else label[i]
+                    first[i] = total if better else first[i]
+            for i in range(n):
+                stripe[y, x0 + i] = -1 if label[i] == states else label[i]
+                margin[y, x0 + i] = second[i] - first[i]
+                misfit[y, x0 + i] = cost[y, label[i], i]
+
+
+def decode_by_order(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDArray[np.float64],
+                    lit: NDArray[np.bool_], spec: PatternSpec, direction: int, costs: OrderCosts = OrderCosts(),
+                    ) -> tuple[NDArray[np.int16], NDArray[np.float32], NDArray[np.float32]]:
+    """Stripes decoded line by line along the phase direction (see the module's docstring).
+
+    Parameters
+    ----------
+    levels : (K, H, W) float32 array
+        Bit levels (`Decoded.levels`: 0 = the bit's off level, 1 = its on level).
+    noise : (H, W) float32 array
+        Standard deviation of the envelopes' noise relative to the levels' reference (the
+        DC or the pilot: `Demodulated.noise` divided by it); 0 where unknown.
+    span : (K,) float64 array
+        Each bit's on minus off level relative to the reference: bit `n`'s level has the
+        noise ``noise / span[n]``.
+    lit : (H, W) bool array
+        Pixels where a carrier was detected.
+    spec : PatternSpec
+        The pattern: its codes (the all-zero one, if projected, is left to the dark state:
+        no carrier tells it from shadow) and orientation.
+    direction : {1, -1, 0}
+        `stripe_direction`; 0 makes the previous stripe as cheap as the next.
+    costs : OrderCosts
+
+    Returns
+    -------
+    stripe : (H, W) int16 array
+        Stripe index, -1 for the dark state.
+    margin : (H, W) float32 array
+        Nats between the best labelling and the best one with another label at the pixel.
+    misfit : (H, W) float32 array
+        The pixel's own evidence against its label (`emission`), nats.
+    """
+    codes = stripe_codes(spec)
+    stripes = np.arange(spec.stripes)
+    if not spec.skip_zero_code:
+        stripes = stripes[codes != 0]
+    order = stripes if direction >= 0 else stripes[::-1]
+    on = np.ascontiguousarray(code_bits(codes[order], spec.bits).T, dtype=np.float32)  # (K, S)
+    step, back = (costs.step, costs.back) if direction != 0 else (costs.step, costs.step)
+    table = np.array([step, back, costs.jump, costs.dark, costs.model_error, costs.bit_cap, costs.gain_sd,
+                      costs.dark_lit, costs.unlit], dtype=np.float32)
+
+    def frame(a: NDArray) -> NDArray:  # the phase direction along axis -2
+        return np.ascontiguousarray(a if spec.orientation == "rows" else np.swapaxes(a, -1, -2))
+
+    lv, sd, mask = frame(levels), frame(np.asarray(noise, dtype=np.float32)), frame(lit)
+    span = np.ascontiguousarray(span, dtype=np.float32)
+    h, w = mask.shape
+    index = np.empty((h, w), dtype=np.int16)
+    margin, misfit = np.empty((h, w), dtype=np.float32), np.empty((h, w), dtype=np.float32)
+    over_rows(lambda blocks: _order_columns(lv, sd, span, mask, on, table, blocks, index, margin, misfit),
+              -(-w // BLOCK))
+    stripe = np.where(index >= 0, order.astype(np.int16)[np.maximum(index, 0)], np.int16(-1)).astype(np.int16)
+    if spec.orientation != "rows":
+        stripe, margin, misfit = (np.ascontiguousarray(a.T) for a in (stripe, margin, misfit))
+    return stripe, margin, misfit

@@ -1,0 +1,153 @@
+"""Decoding the stripes by the order they come in along the phase direction (`sliscan.stripe_order`)."""
+
+import numpy as np
+import pytest
+
+from sliscan import patterns, simulate
+from sliscan.decode import decode
+from sliscan.demodulate import demodulate
+from sliscan.evaluate import accuracy
+from sliscan.patterns import code_bits, stripe_codes
+from sliscan.pipeline import Scanner
+from sliscan.stripe_order import OrderCosts, decode_by_order, stripe_direction
+
+from order_reference import decode_column, evidence, transitions
+
+SPEC = patterns.default_spec((1024, 768))
+ON = code_bits(stripe_codes(SPEC), SPEC.bits).astype(bool)  # (S, K), stripes in order
+
+
+def ideal_levels(stripes, gain=1.0):
+    """``(K, H, W)`` levels of the stripe map `stripes` ``(H, W)`` (-1: dark, all bits 0), times `gain`."""
+    on = np.vstack([ON, np.zeros((1, SPEC.bits), bool)])[stripes]  # (H, W, K); -1 picks the dark row
+    return np.moveaxis(on.astype(np.float32) * np.float32(gain), -1, 0).copy()
+
+
+def staircase(h=150, w=8, first=2, height=20):
+    """Stripes first, first + 1, ... down every column, `height` rows each."""
+    return np.broadcast_to((first + np.arange(h) // height)[:, None], (h, w)).astype(np.int16).copy()
+
+
+SPAN = np.full(SPEC.bits, 0.3)
+
+
+def test_kernels_equal_the_dense_reference(rng):
+    """Stripes, margins and own misfits are the max-marginals of an explicit transition matrix
+    over the evidence written out in numpy (`order_reference`), on noisy levels with dim, dark,
+    corrupted and non-finite pixels, a depth jump, and a width that leaves a partial block."""
+    truth = staircase(h=120, w=45)
+    truth[50:58] = 11  # a depth edge: a jump and back
+    truth[90:100, 5:20] = -1  # a shadow
+    levels = ideal_levels(truth) * rng.uniform(0.2, 1.2, truth.shape).astype(np.float32)
+    levels += rng.normal(0, 0.15, levels.shape).astype(np.float32)
+    levels[:, 30, 3] = np.nan
+    noise = rng.uniform(0.0, 0.05, truth.shape).astype(np.float32)
+    noise[7, 7] = np.inf
+    lit = (truth >= 0) ^ (rng.random(truth.shape) < 0.05)
+    costs = OrderCosts()
+    stripe, margin, misfit = decode_by_order(levels, noise, SPAN, lit, SPEC, 1, costs)
+    cost = evidence(levels, noise, SPAN, lit, ON, costs)
+    t = transitions(len(ON), costs, costs.step, costs.back)
+    for x in range(truth.shape[1]):
+        label, ref_margin, ref_misfit = decode_column(cost[:, x], t)
+        sure = ref_margin > 1e-2  # ties may break either way in float32
+        expected = np.where(label == len(ON), -1, label)
+        np.testing.assert_array_equal(stripe[sure, x], expected[sure], err_msg=f"column {x}")
+        np.testing.assert_allclose(margin[:, x], ref_margin, atol=2e-3, rtol=1e-4, err_msg=f"column {x}")
+        np.testing.assert_allclose(misfit[sure, x], ref_misfit[sure], atol=1e-3, rtol=1e-4, err_msg=f"column {x}")
+
+
+def test_a_dim_surface_decodes_by_its_code_not_its_level(rng):
+    """A surface turning away from the projector: every level is 0.3 of its on level (the
+    ambient part of the DC stays), so a 0.5 threshold reads every bit off, but the code's
+    pattern is clear: every pixel gets its stripe, with a wide margin."""
+    truth = staircase()
+    levels = ideal_levels(truth, gain=0.3) + rng.normal(0, 0.02, (SPEC.bits, *truth.shape)).astype(np.float32)
+    noise = np.full(truth.shape, 0.006, np.float32)  # 0.02 in level units
+    stripe, margin, misfit = decode_by_order(levels, noise, SPAN, np.ones(truth.shape, bool), SPEC, 1)
+    assert np.array_equal(stripe, truth)
+    assert np.median(margin) > 5 and np.percentile(misfit, 95) < 3
+
+
+def test_context_outvotes_a_corrupted_run_and_the_order_has_no_far_stripes(rng):
+    """Six rows inside stripe 4 (code 0111) whose most significant bit reads 0.6 (light leaking
+    from a neighbour): a 0.5 threshold makes them stripe 9 (1111), half the depth range away.
+    Their evidence for 9 is ~3 nats a row better, the two jumps there and back cost 30: they
+    take their stripe again, and no pixel anywhere is more than one stripe off."""
+    truth = staircase()
+    levels = ideal_levels(truth) + rng.normal(0, 0.03, (SPEC.bits, *truth.shape)).astype(np.float32)
+    assert np.all(truth[45:51] == 4) and ON[4].tolist() == [False, True, True, True]
+    levels[0, 45:51] = 0.6
+    noise = np.full(truth.shape, 0.03, np.float32)
+    stripe, margin, _ = decode_by_order(levels, noise, SPAN, np.ones(truth.shape, bool), SPEC, 1)
+    assert np.array_equal(stripe[45:51], truth[45:51])
+    assert np.all(np.abs(stripe.astype(int) - truth) <= 1)
+
+
+def test_dark_pixels_stay_dark_and_unusable_pixels_give_no_evidence(rng):
+    truth = staircase()
+    truth[60:80] = -1
+    levels = ideal_levels(truth) + rng.normal(0, 0.05, (SPEC.bits, *truth.shape)).astype(np.float32)
+    levels[:, 30, 2] = np.nan
+    noise = np.full(truth.shape, 0.03, np.float32)
+    stripe, margin, misfit = decode_by_order(levels, noise, SPAN, truth >= 0, SPEC, 1)
+    assert np.all(stripe[61:79] == -1)
+    assert misfit[30, 2] == 0 and stripe[30, 2] == truth[30, 2]  # its column's context decides it
+    assert np.array_equal(stripe[truth >= 0], truth[truth >= 0])
+
+
+def test_direction_and_orientation(rng):
+    truth = staircase()
+    valid = np.ones(truth.shape, bool)
+    assert stripe_direction(truth, valid, SPEC) == 1
+    assert stripe_direction(truth[::-1], valid, SPEC) == -1
+    assert stripe_direction(np.full(truth.shape, 3), valid, SPEC) == 0
+    columns = SPEC.with_(orientation="columns")
+    assert stripe_direction(truth.T, valid.T, columns) == 1
+    levels = ideal_levels(truth) + rng.normal(0, 0.05, (SPEC.bits, *truth.shape)).astype(np.float32)
+    noise = np.full(truth.shape, 0.03, np.float32)
+    rows = decode_by_order(levels, noise, SPAN, valid, SPEC, 1)
+    flipped = decode_by_order(levels[:, ::-1], noise[::-1], SPAN, valid, SPEC, -1)
+    turned = decode_by_order(np.swapaxes(levels, 1, 2), noise.T, SPAN, valid.T, columns, 1)
+    assert np.array_equal(rows[0], truth) and np.array_equal(flipped[0], truth[::-1])
+    for a, b in zip(rows, turned):
+        np.testing.assert_array_equal(a, b.T)
+
+
+def realistic(seed):
+    return simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=seed), ambient=0.1,
+                               projector_gamma=2.2, seed=seed, supersample=2)
+
+
+def test_order_decodes_more_of_the_sphere_than_per_pixel_decisions(small_rig):
+    """The virtual sphere under issue 2's conditions (640x480, smooth albedo 0.15-1, ambient
+    10 %, gamma 2.2, blur, noise, 8 bits; seed 3, not one the defaults were chosen on).
+    Measured: stripes right on 88.6 % of the lit pixels against 63.9 % per pixel (a stripe is
+    only ~30 rows here, so many pixels see a border in their window), completeness 92.1 %
+    against 65.6 %, stripes more than one off 0.18 % against 0.05 %; at 1296x972 (seeds 0, 1)
+    93.2-93.6 % against 90.8-90.9 %.  Asserted with room for other renders: at least 1.5
+    points more of both, far stripes under 0.5 %."""
+    spec = patterns.default_spec((1024, 768))
+    capture = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(spec), realistic(3))
+    results = {name: accuracy(Scanner(spec, small_rig.calibration, decode_options=dict(order=order)).scan(capture.image),
+                              capture.truth, spec, small_rig.calibration)
+               for name, order in (("order", None), ("pixel", False))}
+    order, pixel = results["order"], results["pixel"]
+    assert order.stripe_accuracy >= pixel.stripe_accuracy + 0.015, results
+    assert order.completeness >= pixel.completeness + 0.015, results
+    assert order.far_stripe <= 0.005, results
+    assert order.median_mm <= 1.1 * order.oracle_median_mm
+
+
+def test_decode_by_order_is_the_default_only_without_the_zero_code(small_rig):
+    """sliscan's patterns (no all-zero code) are decided by order; the thesis's per pixel,
+    unless asked."""
+    capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(SPEC), realistic(1))
+    demod, _ = demodulate(capture.image, SPEC)
+    default, forced, pixel = (decode(demod, SPEC, order=o) for o in (None, True, False))
+    assert np.array_equal(default.stripe, forced.stripe) and not np.array_equal(default.valid, pixel.valid)
+    thesis = patterns.thesis_spec((1024, 768))
+    capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(thesis), realistic(1))
+    demod, _ = demodulate(capture.image, thesis)
+    default, pixel = decode(demod, thesis), decode(demod, thesis, order=False)
+    assert np.array_equal(default.stripe, pixel.stripe) and np.array_equal(default.valid, pixel.valid)
