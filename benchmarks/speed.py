@@ -87,6 +87,7 @@ def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, method:
     out["scan"] = total
     demod, _ = scanner.demodulate(image)
     out["decode only"] = timed(lambda: decode(demod, spec), runs)
+    out["decode only, per-pixel decisions"] = timed(lambda: decode(demod, spec, order=False), runs)
     result = results[-1]
     with tempfile.TemporaryDirectory() as tmp:
         out["export npz"] = timed(lambda: result.save_npz(Path(tmp) / "scan.npz"), runs)

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from sliscan._threads import default_workers, over_rows
 from sliscan.demodulate import Demodulated
 from sliscan.patterns import code_to_stripe, stripe_center, stripe_codes
-from sliscan.stripe_order import OrderCosts, decode_by_order, stripe_direction
+from sliscan.stripe_order import OrderCosts, anchored_runs, decode_by_order, stripe_direction
 from sliscan.types import PatternSpec
 
 
@@ -429,7 +429,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
            min_confidence: float | None = None, min_snr: float | None = None, stripe_borders: bool = True,
            max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.6,
            neighbour_radius: int = 3, border_reach: int = 10, order: OrderCosts | bool | None = None,
-           min_margin: float = 1.0, max_order_misfit: float = 8.0) -> Decoded:
+           min_margin: float = 1.0, max_order_misfit: float = 8.0, min_anchored: float = 0.25) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
     Parameters
@@ -481,6 +481,12 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         is at most `max_order_misfit` nats (about one bit fully wrong and another half wrong;
         `sliscan.stripe_order.emission`).  The per-pixel tests above (bit clearness,
         `stripe_borders`) then do not apply; the others do.
+    min_anchored : float
+        Decided by order, a pixel is valid only if at least this share of its run (the
+        pixels of its stripe in a row along the phase direction) got the same stripe from the
+        per-pixel decisions (`sliscan.stripe_order.anchored_runs`): the order fills in where
+        the stripe's own pixels vouch for it, it does not invent a stripe (a blurred capture:
+        0.24 % of the frame decoded with 0.25, 2.4 % with 0.1, mostly wrong, none per pixel).
 
     Returns
     -------
@@ -509,10 +515,11 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     if order is not False:
         costs = order if isinstance(order, OrderCosts) else OrderCosts()
         noise = np.zeros(dc.shape, np.float32) if demod.noise is None else demod.noise / reference
+        anchors = np.where(valid, stripe, np.int16(-1))
         stripe, margin, misfit = decode_by_order(levels, noise, scale.span, lit, spec,
                                                  stripe_direction(stripe, valid, spec), costs)
         valid = (stripe >= 0) & (margin >= min_margin) & (misfit <= max_order_misfit)
-        valid &= (demod.residual <= max_residual) | ~lit
+        valid &= ((demod.residual <= max_residual) | ~lit) & anchored_runs(stripe, anchors, spec, min_share=min_anchored)
     if spec.pilot is None and not spec.skip_zero_code:
         # Modulated pixels have at least one bit on; add the lit all-zero stripe.
         zero = _zero_stripe(np.where(valid, stripe, -1), ~lit, demod.dc, spec, min_dc=zero_code_dc)

@@ -256,6 +256,43 @@ def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], span
                 misfit[y, x0 + i] = cost[y, label[i], i]
 
 
+@numba.njit(cache=True, nogil=True)
+def _anchored_columns(stripe: NDArray[np.int16], anchors: NDArray[np.int16], min_share: float,
+                      lines: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
+    """`anchored_runs` for the given columns (the phase direction along axis 0)."""
+    h = stripe.shape[0]
+    for x in lines:
+        start = 0
+        while start < h:
+            end, anchored = start, 0
+            while end < h and stripe[end, x] == stripe[start, x]:
+                anchored += anchors[end, x] == stripe[start, x]
+                end += 1
+            keep = anchored > 0 and anchored >= min_share * (end - start) and stripe[start, x] >= 0
+            for y in range(start, end):
+                out[y, x] = keep
+            start = end
+
+
+def anchored_runs(stripe: NDArray[np.int16], anchors: NDArray[np.int16], spec: PatternSpec, *,
+                  min_share: float = 0.0) -> NDArray[np.bool_]:
+    """Pixels of `stripe` ``(H, W)`` whose run (pixels of one stripe in a row along the phase
+    direction) holds at least one pixel, and at least `min_share` of its pixels, where
+    `anchors` ``(H, W)`` (stripes decided pixel by pixel, -1 where not) has the same stripe.
+
+    The order fills in a stripe where its own pixels are unclear but its neighbours are sure;
+    a run that no pixel vouches for on its own (a blurred capture, light leaking into a shadow)
+    is the order's guess alone, and is dropped.
+    """
+    def frame(a: NDArray) -> NDArray:
+        return np.ascontiguousarray(a if spec.orientation == "rows" else a.T, dtype=np.int16)
+
+    s, anchor = frame(stripe), frame(anchors)
+    out = np.empty(s.shape, dtype=bool)
+    over_rows(lambda lines: _anchored_columns(s, anchor, float(min_share), lines, out), s.shape[1])
+    return out if spec.orientation == "rows" else np.ascontiguousarray(out.T)
+
+
 def decode_by_order(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDArray[np.float64],
                     lit: NDArray[np.bool_], spec: PatternSpec, direction: int, costs: OrderCosts = OrderCosts(),
                     ) -> tuple[NDArray[np.int16], NDArray[np.float32], NDArray[np.float32]]:
