@@ -12,10 +12,10 @@ depth edges and shadows.  So each such line is decoded as a whole, by dynamic pr
   light that reaches a surface turning away from the projector falls with the angle of
   incidence while the ambient part of the DC (which the levels are relative to) does not, so
   the "on" levels of a pixel near a limb read 0.3 instead of 1 with a perfectly clear code.
-  The gain is fitted per stripe (the mean of its on bits' levels) with a log-normal prior
-  around 1; the deviations count in units of the pixel's noise (`Demodulated.noise`) plus a
-  model error proportional to the gain, each bit's cost capped (one corrupted bit costs a
-  bounded amount).  The dark state has no carrier: cheap where `decode._lit` found none,
+  The gain is fitted per stripe (the mean of its on bits' levels) with a prior around 1
+  (near log-normal); the deviations count in units of the pixel's noise
+  (`Demodulated.noise`) plus a model error proportional to the gain, each bit's cost capped
+  (one corrupted bit costs a bounded amount).  The dark state has no carrier: cheap where `decode._lit` found none,
   costly where it did.
 * **Order** (the transition costs): staying costs nothing, the next stripe along the order
   `step`, the previous one `back`, any other (a depth edge) `jump`, entering or leaving the
@@ -23,12 +23,15 @@ depth edges and shadows.  So each such line is decoded as a whole, by dynamic pr
 * **Decision**: each pixel takes the label of the best path through it; its margin is how
   much worse (in nats) the best path through any other label at that pixel is (max-marginals
   from a forward and a backward pass).  A small margin means the context does not settle it.
+  `decode` keeps a pixel when its margin is large enough, its own evidence does not
+  contradict its label badly, and enough of its stripe's run down the column got that stripe
+  from the per-pixel decisions (`anchored_runs`).
 
 The direction the stripe numbers grow along the lines is the rig's (a camera upside down
 reverses it); `stripe_direction` reads it from the per-pixel decisions.
 
-Lines in threads (compiled kernels over blocks of lines, each line's states in a vectorised
-inner loop).
+Lines in threads (compiled kernels over blocks of 32 lines decoded side by side: the
+innermost loops run across the block, so they vectorise).
 """
 
 from __future__ import annotations
@@ -60,7 +63,8 @@ class OrderCosts:
     bit_cap : float
         The most one bit's misfit can cost.
     gain_sd : float
-        Standard deviation of the natural log of the gain below 1 (above 1: half of it).
+        Width of the gain's prior: about the standard deviation of its natural log below 1
+        (above 1: half of it); see `emission`.
     dark_lit, unlit : float
         Cost of the dark state on a pixel where a carrier was detected (`Decoded.lit`), and of
         any stripe where none was.
