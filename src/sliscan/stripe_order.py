@@ -30,7 +30,7 @@ depth edges and shadows.  So each such line is decoded as a whole, by dynamic pr
 The direction the stripe numbers grow along the lines is the rig's (a camera upside down
 reverses it); `stripe_direction` reads it from the per-pixel decisions.
 
-Lines in threads (compiled kernels over blocks of 32 lines decoded side by side: the
+Lines in threads (compiled kernels over blocks of 64 lines decoded side by side: the
 innermost loops run across the block, so they vectorise).
 """
 
@@ -161,7 +161,7 @@ def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDAr
 
 #: Lines of `_order_columns`' blocks: their evidence is computed row by row (contiguous reads),
 #: then each line is decoded from it.
-BLOCK = 32
+BLOCK = 64
 
 
 @numba.njit(cache=True, nogil=True, inline="always", fastmath=FAST, error_model="numpy")
@@ -215,7 +215,7 @@ def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], span
     cost = np.empty((h, states + 1, BLOCK), dtype=np.float32)
     # forward and backward messages laid out as +inf, stripes, +inf, dark (see `_relax`)
     fwd = np.full((h, states + 3, BLOCK), np.inf, dtype=np.float32)
-    bwd = np.full((h, states + 3, BLOCK), np.inf, dtype=np.float32)
+    below = np.full((states + 3, BLOCK), np.inf, dtype=np.float32)
     ahead = np.full((states + 3, BLOCK), np.inf, dtype=np.float32)
     nothing = np.zeros((states + 1, BLOCK), dtype=np.float32)
     work = np.empty(BLOCK, np.float32)
@@ -230,26 +230,27 @@ def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], span
         fwd[0, dark] = cost[0, states]
         for y in range(1, h):
             _relax(fwd[y - 1], cost[y], step, back, jump, to_dark, work, fwd[y])
-        bwd[h - 1, 1:states + 1] = 0
-        bwd[h - 1, dark] = 0
-        for y in range(h - 2, -1, -1):
-            # what lies below row y, its evidence included, relaxed against the order running
-            # upwards (the next stripe down is the previous one up); the messages exclude row
-            # y's own evidence
-            below, evidence = bwd[y + 1], cost[y + 1]
-            for s in range(states):
+        # the backward pass, each row decided as soon as its message is known
+        below[1:states + 1] = 0
+        below[dark] = 0
+        for y in range(h - 1, -1, -1):
+            if y < h - 1:
+                # what lies below row y, its evidence included, relaxed against the order running
+                # upwards (the next stripe down is the previous one up); the message excludes
+                # row y's own evidence
+                evidence = cost[y + 1]
+                for s in range(states):
+                    for i in range(BLOCK):
+                        ahead[s + 1, i] = below[s + 1, i] + evidence[s, i]
                 for i in range(BLOCK):
-                    ahead[s + 1, i] = below[s + 1, i] + evidence[s, i]
-            for i in range(BLOCK):
-                ahead[dark, i] = below[dark, i] + evidence[states, i]
-            _relax(ahead, nothing, back, step, jump, to_dark, work, bwd[y])
-        for y in range(h):
+                    ahead[dark, i] = below[dark, i] + evidence[states, i]
+                _relax(ahead, nothing, back, step, jump, to_dark, work, below)
             first[:], second[:], label[:] = np.inf, np.inf, states
-            forward, backward = fwd[y], bwd[y]
+            forward = fwd[y]
             for s in range(states + 1):
                 k = s + 1 if s < states else dark
                 for i in range(BLOCK):
-                    total = forward[k, i] + backward[k, i]
+                    total = forward[k, i] + below[k, i]
                     better = total < first[i]
                     second[i] = first[i] if better else min(second[i], total)
                     label[i] = s if better else label[i]
