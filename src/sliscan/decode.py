@@ -472,9 +472,10 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         `OrderCosts` (True: the default costs), False: per pixel.  None (default): by order
         for patterns that never project the all-zero code (`skip_zero_code`, or a pilot),
         per pixel for the others (the thesis's), whose lit zero stripe looks like shadow and
-        whose shadows, seen through the gain-free evidence, take the light leaking from a
-        neighbour for a dim code (measured on the virtual rig's sphere: 0.17 % -> 0.9 % gross
-        outliers for 3 points of completeness).
+        whose shadows, seen through the gain-free evidence, can take the light leaking from a
+        neighbour for a dim code (measured at 5 MP on the virtual rig's smooth sphere: gross
+        outliers 0.16 % -> 0.35 % for 2 points of completeness; fewer on the other scenes:
+        README, first Accuracy table).
     min_margin, max_order_misfit : float
         Decided by order, a pixel is valid when the best labelling with another label at the
         pixel costs at least `min_margin` nats more, and its own evidence against its label
