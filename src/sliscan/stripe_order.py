@@ -115,10 +115,10 @@ def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDAr
     `n` columns of `out` ``(S + 1, m)``, m >= n (nats): each stripe's misfit, then the dark
     state's; the other columns get 0 (no evidence).
 
-    A stripe's code (`on` ``(K, S)``: 1 where bit `n` of stripe `s` is on) is fitted with the
+    A stripe's code (`on` ``(K, S)``: 1 where bit `k` of stripe `s` is on) is fitted with the
     gain ``g`` = the mean of its on bits' levels (at least 1e-3); each bit costs ``(level - g on)
     ** 2 / (2 (sd ** 2 + (model_error g) ** 2))``, at most `bit_cap` (``sd = noise[y, x] /
-    span[n]``), and the gain has the prior ``(g - 1) ** 2 / (2 s ** 2 g)`` below 1 (``s`` =
+    span[k]``), and the gain has the prior ``(g - 1) ** 2 / (2 s ** 2 g)`` below 1 (``s`` =
     `gain_sd`: near ``(ln g / s) ** 2 / 2`` without a logarithm) and ``(g - 1) ** 2 / (2 (s /
     2) ** 2)`` above.  A pixel with a non-finite level or noise gives no evidence (0 for every
     state).  `costs` as in `_order_columns`; `gain` ``(m,)`` is working memory.  The innermost
