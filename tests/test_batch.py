@@ -260,6 +260,17 @@ def test_scan_frame_never_raises_and_reuses_its_scanner(take: Path) -> None:
     assert wrong.status == "failed" and "640" in wrong.error
 
 
+def test_job_decisions_shape_its_scanner(take: Path) -> None:
+    """A job's decisions reach the worker's scanner (and its token), so a batch decodes as `sliscan scan` does."""
+    spec, calibration = PatternSpec.load(take / "cp.json"), Calibration.load(take / "rig.json")
+    jobs = {d: batch.Job.create(spec, calibration, decisions=d) for d in ("auto", "order", "pixel")}
+    assert len({job.token for job in jobs.values()}) == 3
+    assert [jobs[d].scanner().decode_options for d in ("auto", "order", "pixel")] == [{}, {"order": True},
+                                                                                      {"order": False}]
+    with pytest.raises(Exception, match="decisions must be one of"):
+        batch.Job.create(spec, calibration, decisions="majority")
+
+
 def test_batch_report_lists_every_frame(take: Path) -> None:
     """scan --out ... --report writes the batch's HTML page: every frame, failures with their error."""
     pytest.importorskip("plotly")

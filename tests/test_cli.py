@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 
 from sliscan import patterns, sequences, simulate
+from sliscan._validate import read_image
 from sliscan.formats import mat5, npz, ply, premat5
 from sliscan.formats.calibration import read_matrix_txt, write_matrix_txt
+from sliscan.pipeline import Scanner
 from sliscan.reconstruct import triangulate_points
 from sliscan.types import Calibration, PatternSpec
 
@@ -150,6 +152,21 @@ def test_scan_with_text_matrices_matches_the_json(plane: tuple[Path, str], tmp_p
     np.testing.assert_array_equal(from_text.valid, from_json.valid)
     # cam.txt keeps 10 significant digits: points agree far below a micrometre
     np.testing.assert_allclose(from_text.points, from_json.points, rtol=0, atol=1e-3, equal_nan=True)
+
+
+@pytest.mark.parametrize("decisions", ["pixel", "order"])
+def test_scan_decisions_are_the_decoders_of_the_python_api(plane: tuple[Path, str], tmp_path: Path,
+                                                           decisions: str) -> None:
+    folder, _ = plane
+    ok("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+       "--decisions", decisions, "--npz", "scan.npz", cwd=tmp_path)
+    from_cli = npz.read_scan_npz(tmp_path / "scan.npz")
+    scanner = Scanner(PatternSpec.load(folder / "cp.json"), Calibration.load(folder / "rig.json"),
+                      decode_options=dict(order=decisions == "order"))
+    expected = scanner.scan(read_image(folder / "capture.png"))
+    np.testing.assert_array_equal(from_cli.valid, expected.valid)
+    np.testing.assert_array_equal(from_cli.stripe, expected.stripe)
+    np.testing.assert_allclose(from_cli.points, expected.points, rtol=0, atol=1e-4, equal_nan=True)
 
 
 @pytest.mark.parametrize("method", ["svd", "lstsq"])
@@ -342,6 +359,11 @@ def test_pattern_graycode_defaults_to_opencvs_sequence(tmp_path: Path) -> None:
     assert spec == PatternSpec(kind="graycode", projector_size=PROJECTOR, orientation="both", b_p=0.5,
                                frames=tuple(f"gc_{k:02d}.png" for k in range(42)))
     assert np.array_equal(read_png(tmp_path / "gc_40.png"), np.full(PROJECTOR[::-1], 255, np.uint8))
+
+
+def test_scan_refuses_decisions_for_a_sequence(pmp_run: Path) -> None:
+    fails_cleanly(("scan", "cap", "--pattern", "pat/pmp.json", "--calibration", "rig.json", "--decisions", "pixel",
+                   "--npz", "x.npz"), "pat/pmp.json", pmp_run)
 
 
 @pytest.mark.parametrize("captures", [["cap"], ["cap/pmp_*.png"], [f"cap/pmp_{k:02d}.png" for k in range(6)]])

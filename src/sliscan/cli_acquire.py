@@ -28,10 +28,11 @@ from sliscan._validate import InputError, write_image
 from sliscan.acquire import RECORD_NAME, Session, capture_paths, write_record
 from sliscan.calibrate import MIN_BOARD_VIEWS
 from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCENES, SIZE, _board, _board_options,
-                         _check_outputs, _check_projector, _conditions, _options, _overwrite_option, _progress,
-                         _run_calibrate_board, _run_calibrate_target, _sequence_spec, cli)
+                         _check_outputs, _check_projector, _conditions, _decisions_option, _options,
+                         _overwrite_option, _progress, _run_calibrate_board, _run_calibrate_target, _sequence_spec,
+                         cli)
 from sliscan.formats.calibration import load_calibration
-from sliscan.pipeline import Scanner
+from sliscan.pipeline import Scanner, decision_options
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, PatternSpec
 
@@ -465,6 +466,7 @@ Examples:
 @_device_options
 @click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
               help="Demodulator (as sliscan scan).")
+@_decisions_option
 @click.option("--frames", type=click.IntRange(min=1), help="Stop after this many frames.")
 @click.option("--seconds", type=POSITIVE, help="Stop after this many seconds.")
 @click.option("--record", type=click.Path(file_okay=False, path_type=Path),
@@ -478,7 +480,7 @@ Examples:
 @_virtual_options
 @_overwrite_option
 def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str, resolution: tuple[int, int] | None,
-             exposure: float | None, gain: float | None, settle_s: float, method: str, frames: int | None,
+             exposure: float | None, gain: float | None, settle_s: float, method: str, decisions: str, frames: int | None,
              seconds: float | None, record: Path | None, window: bool, motion_frames: int | None,
              velocity: tuple[float, ...], spin: float, overwrite: bool, **virtual_args: Any) -> None:
     """Scan continuously: project one single-shot pattern, then scan every camera frame.
@@ -514,7 +516,7 @@ def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str,
         if devs.camera.size != calib.camera.size:
             (w, h), (cw, ch) = devs.camera.size, calib.camera.size
             raise InputError(f"camera {camera_id} gives {w}x{h} frames but the camera of {calibration} is {cw}x{ch}")
-        scanner = Scanner(spec, calib, method=method)
+        scanner = Scanner(spec, calib, method=method, decode_options=decision_options(spec, decisions))
         started = datetime.now(timezone.utc).isoformat(timespec="seconds")
         preview = devices.PreviewWindow(devs.camera.size) if window else None
         try:

@@ -116,6 +116,31 @@ def baseline_direction(calibration: Calibration) -> str:
     return "rows" if abs(offset[1]) >= abs(offset[0]) else "columns"
 
 
+#: How a single-shot pattern's stripes are decided (`sliscan scan --decisions`): the
+#: `decode.decode` options of each choice.  ``auto``: by order for sliscan's patterns, per pixel
+#: for the thesis's (`decode.decode`'s ``order=None``); ``order``: down each column as a whole
+#: (`sliscan.stripe_order`), the more complete and about 2-3x slower decoding; ``pixel``: each
+#: pixel from its own bits, the faster one.
+DECISIONS: dict[str, dict[str, Any]] = {"auto": {}, "order": {"order": True}, "pixel": {"order": False}}
+
+
+def decision_options(spec: PatternSpec, decisions: str) -> dict[str, Any]:
+    """`Scanner.decode_options` for one of the `DECISIONS` on `spec`.
+
+    Raises
+    ------
+    InputError
+        For an unknown choice, or a choice other than ``auto`` with a multi-frame pattern
+        (its frames are decoded pixel by pixel).
+    """
+    if decisions not in DECISIONS:
+        raise InputError(f"decisions must be one of {', '.join(DECISIONS)}, got {decisions!r}")
+    if spec.kind in MULTI_FRAME_KINDS and decisions != "auto":
+        raise InputError(f"decisions {decisions!r} is for single-shot patterns; a {spec.kind} sequence is decoded "
+                         f"pixel by pixel")
+    return dict(DECISIONS[decisions])
+
+
 @dataclass(frozen=True, eq=False)
 class ScanStages:
     """What `Scanner.scan_stages` computed on the way to the points (for `sliscan.report`).
