@@ -111,7 +111,7 @@ def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclea
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
            min_confidence: float = 0.1, min_snr: float = 3.0, stripe_borders: bool = True, max_residual: float = 0.6,
-           max_misfit: float = 0.25, zero_code_dc: float = 0.6, neighbour_radius: int = 3,
+           max_misfit: float = 0.25, zero_code_dc: float = 0.35, neighbour_radius: int = 3,
            border_reach: int = 10) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
@@ -172,7 +172,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     valid = lit & (stripe >= 0) & modelled & settled
     if spec.pilot is None and not spec.skip_zero_code:
         # Modulated pixels have at least one bit on; add the lit all-zero stripe.
-        zero = _zero_stripe(np.where(valid, stripe, -1), ~lit, demod.dc, spec, min_dc=zero_code_dc)
+        zero = _zero_stripe(np.where(valid, stripe, -1), demod.dc, spec, min_dc=zero_code_dc)
         lit, valid, stripe = lit | zero, valid | zero, np.where(zero, 0, stripe)
     if demod.misfit is not None:
         valid &= demod.misfit <= max_misfit

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+import scipy.ndimage
 from numpy.typing import NDArray
 
 from sliscan._threads import default_workers, over_rows
@@ -234,46 +235,80 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
             valid[y, x] = lit[y, x] and s >= 0 and modelled and settled
 
 
-def _zero_stripe(stripe: NDArray[np.int64], unmodulated: NDArray[np.bool_], dc: NDArray[np.float32], spec: PatternSpec,
-                 *, min_dc: float) -> NDArray[np.bool_]:
+#: The lit zero stripe's walk from stripe 1 (`_zero_stripe`) stops where the DC falls below
+#: this fraction of the brightest DC of the quarter stripe walked just before: leaving the
+#: projector's light or entering a cast shadow divides the DC by (projected + ambient) / ambient
+#: within a few pixels (about 3 on the virtual rig: 10 % ambient, a mid-grey pattern), while a
+#: smooth albedo changes it far less over a quarter stripe.
+ZERO_STRIPE_DROP = 0.5
+#: ... and pixels without a stripe join the zero stripe along the carriers (`_zero_stripe`)
+#: where their DC is at least this fraction of the adjacent stripe 1's.
+ZERO_STRIPE_SPREAD = 0.6
+#: ... in runs the walk reached for at least this share of their pixels.
+ZERO_STRIPE_SPREAD_SHARE = 0.25
+
+
+def _zero_stripe(stripe: NDArray[np.integer], dc: NDArray[np.float32], spec: PatternSpec, *,
+                 min_dc: float) -> NDArray[np.bool_]:
     """Pixels of the lit all-zero stripe, found next to stripe 1 along the phase direction.
 
     Stripe 0 carries no carrier, so a single frame cannot tell it from shadow pixel by
     pixel.  Two structural facts can: stripe 0 is the only neighbour of stripe 1 besides
     stripe 2, and on a continuous surface the stripes follow each other monotonically along
-    every camera line in the phase direction.  So along each such line, walking from the end
-    of stripe 1 away from stripe 2, the unmodulated pixels are stripe 0 for at most about
-    stripe 1's own length there, as long as their DC stays at least `min_dc` times stripe 1's
-    (the same surface, lit).  The walk stops at the first pixel that fails.
+    every camera line in the phase direction.  So:
+
+    1. Along each such line, walking from the end of stripe 1 away from stripe 2, the pixels
+       without a stripe are stripe 0 for at most 1.2 times stripe 1's own length there, as
+       long as their DC is at least `min_dc` times stripe 1's mean DC and at least
+       `ZERO_STRIPE_DROP` times the brightest DC of the quarter stripe walked before them.
+       The walk stops at the first pixel that fails.
+    2. Along the carriers, a run of pixels without a stripe whose DC is at least
+       `ZERO_STRIPE_SPREAD` times stripe 1's (the nearest lines' where a line has none) joins
+       the zero stripe if the walk reached at least `ZERO_STRIPE_SPREAD_SHARE` of it: stripe
+       0 goes on behind an object that hides the stripe 1 below it.
+
+    Measured on the 5 MP virtual rig, thesis pattern, smooth albedo (a walk against stripe 1's
+    DC alone at 0.6, before): right stripes on the sphere 88.1 -> 90.2 %, steps 93.3 -> 94.6 %,
+    tilted plane 97.1 -> 98.1 %, with fewer pixels beyond the projector's light taken as
+    stripe 0 (README, "The all-zero code").
 
     Parameters
     ----------
     stripe : (H, W) int array
-        Stripes decoded from the modulated pixels, -1 where undecided or unmodulated.
-    unmodulated : (H, W) bool array
-        Pixels without a carrier: candidates.
+        Stripes decoded from the modulated pixels, -1 where undecided or unmodulated: the
+        candidates, with the pixels already decoded as stripe 0.
     dc : (H, W) float array
         Local mean intensity.
     """
     if spec.orientation == "columns":
-        return _zero_stripe(stripe.T, unmodulated.T, dc.T, spec.with_(orientation="rows"), min_dc=min_dc).T
+        return _zero_stripe(stripe.T, dc.T, spec.with_(orientation="rows"), min_dc=min_dc).T
     h = stripe.shape[0]
     rows = np.arange(h)[:, None]
     one, two = stripe == 1, stripe == 2
     if not one.any():
-        return np.zeros_like(unmodulated)
+        return np.zeros(stripe.shape, dtype=bool)
     # which way stripe numbers grow along the columns: compare where stripes 1 and 2 lie
     down = not two.any() or np.median(np.nonzero(two)[0]) >= np.median(np.nonzero(one)[0])
     if not down:
-        return _zero_stripe(stripe[::-1], unmodulated[::-1], dc[::-1], spec, min_dc=min_dc)[::-1]
+        return _zero_stripe(stripe[::-1], dc[::-1], spec, min_dc=min_dc)[::-1]
     top = np.where(one, rows, h).min(axis=0)  # first stripe-1 row of each column
     length = one.sum(axis=0)
     reference = np.where(one, dc, 0).sum(axis=0) / np.maximum(length, 1)  # mean DC of stripe 1
     near = (rows < top) & (rows >= top - 1.2 * length)
-    # undecided or already-zero pixels (a blurred border with stripe 1) do not stop the walk
-    passable = near & (unmodulated | (stripe <= 0)) & (dc >= min_dc * reference)
+    quarter = max(3, int(round(0.25 * np.median(length[length > 0]))))
+    after = np.concatenate([dc[1:], dc[-1:]])  # each row's next row, toward stripe 1
+    brightest = scipy.ndimage.maximum_filter1d(after, quarter, axis=0, origin=-(quarter // 2), mode="nearest")
+    candidate = stripe <= 0  # undecided, unmodulated, or decoded as stripe 0 already (a border with stripe 1)
+    passable = near & candidate & (dc >= min_dc * reference) & (dc >= ZERO_STRIPE_DROP * brightest)
     blocked = np.where(near & ~passable, rows, -1).max(axis=0)  # nearest failing row above stripe 1
-    return passable & unmodulated & (rows > blocked)
+    walked = passable & (rows > blocked)
+    columns = np.nonzero(length)[0]
+    spread = np.interp(np.arange(stripe.shape[1]), columns, reference[columns])
+    runs, _ = scipy.ndimage.label(candidate & (dc >= ZERO_STRIPE_SPREAD * spread), np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]]))
+    walked_share = np.bincount(runs[walked], minlength=runs.max() + 1) / np.maximum(np.bincount(runs.ravel()), 1)
+    joined = walked_share >= ZERO_STRIPE_SPREAD_SHARE
+    joined[0] = False
+    return walked | joined[runs]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -427,7 +462,7 @@ def _stripe_of_code(spec: PatternSpec) -> NDArray[np.int64]:
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
            min_confidence: float | None = None, min_snr: float | None = None, stripe_borders: bool = True,
-           max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.6,
+           max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = 0.35,
            neighbour_radius: int = 3, border_reach: int = 10, order: OrderCosts | bool | None = None,
            min_margin: float = 1.0, max_order_misfit: float = 8.0, min_anchored: float = 0.25) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
@@ -460,7 +495,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         fraction of the DC are invalid (see `Demodulated.misfit`).
     zero_code_dc : float
         For patterns that project the all-zero code: the smallest DC, relative to the
-        adjacent stripe 1, of a pixel taken as the lit zero stripe (see `_zero_stripe`).
+        adjacent stripe 1, of a pixel taken as the lit zero stripe by the walk from stripe 1
+        (a floor: the walk stops where the DC drops sharply; see `_zero_stripe`).
     border_reach : int
         Lines before and after a pixel that `refine_borders` compares it with; 0 skips it.
     neighbour_radius : int
@@ -523,7 +559,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         valid &= ((demod.residual <= max_residual) | ~lit) & anchored_runs(stripe, anchors, spec, min_share=min_anchored)
     if spec.pilot is None and not spec.skip_zero_code:
         # Modulated pixels have at least one bit on; add the lit all-zero stripe.
-        zero = _zero_stripe(np.where(valid, stripe, -1), ~lit, demod.dc, spec, min_dc=zero_code_dc)
+        zero = _zero_stripe(np.where(valid, stripe, -1), demod.dc, spec, min_dc=zero_code_dc)
         lit, valid, stripe = lit | zero, valid | zero, np.where(zero, 0, stripe)
     if demod.misfit is not None:
         valid &= demod.misfit <= max_misfit
