@@ -107,13 +107,18 @@ def stripe_direction(stripe: NDArray[np.integer], valid: NDArray[np.bool_], spec
 FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
+#: Lines of `_order_columns`' blocks: their evidence is computed row by row (contiguous reads),
+#: then each line is decoded from it.
+BLOCK = 64
+
+
 @numba.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
 def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDArray[np.float32], lit: NDArray[np.bool_],
              on: NDArray[np.float32], costs: NDArray[np.float32], y: int, x0: int, n: int, out: NDArray[np.float32],
-             gain: NDArray[np.float32]) -> None:
+             work: NDArray[np.float32]) -> None:
     """The evidence of the pixels ``(y, x0 .. x0 + n - 1)`` against every state, into the first
-    `n` columns of `out` ``(S + 1, m)``, m >= n (nats): each stripe's misfit, then the dark
-    state's; the other columns get 0 (no evidence).
+    `n` columns of `out` ``(S + 1, BLOCK)``, n <= `BLOCK` (nats): each stripe's misfit, then the
+    dark state's; the other columns get 0 (no evidence).
 
     A stripe's code (`on` ``(K, S)``: 1 where bit `k` of stripe `s` is on) is fitted with the
     gain ``g`` = the mean of its on bits' levels (at least 1e-3); each bit costs ``(level - g on)
@@ -121,47 +126,64 @@ def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDAr
     span[k]``), and the gain has the prior ``(g - 1) ** 2 / (2 s ** 2 g)`` below 1 (``s`` =
     `gain_sd`: near ``(ln g / s) ** 2 / 2`` without a logarithm) and ``(g - 1) ** 2 / (2 (s /
     2) ** 2)`` above.  A pixel with a non-finite level or noise gives no evidence (0 for every
-    state).  `costs` as in `_order_columns`; `gain` ``(m,)`` is working memory.  The innermost
-    loops run along the pixels, so they vectorise."""
+    state).  `costs` as in `_order_columns`; `work` ``(2 K + 3, BLOCK)`` is working memory.
+
+    The pixels' levels and noise are first copied into `work` (padded to `BLOCK`), so every
+    loop after that runs over `BLOCK` contiguous values of local rows: a fixed trip count
+    without aliasing doubts, which the compiler vectorises (2x faster than reading the levels'
+    rows in place, measured on the 5 MP sphere)."""
     bits, states = on.shape
-    x1 = x0 + n
-    out[:, n:] = 0
     model2, cap, prior = costs[4] * costs[4], costs[5], np.float32(0.5) / (costs[6] * costs[6])
+    level, var = work[:bits], work[bits:2 * bits]  # the levels and 2 sd ** 2 of each bit
+    gain, spread, base = work[2 * bits], work[2 * bits + 1], work[2 * bits + 2]
+    for k in range(bits):
+        inv = np.float32(1) / span[k]
+        for i in range(n):
+            level[k, i] = levels[k, y, x0 + i]
+            v = noise[y, x0 + i] * inv
+            var[k, i] = np.float32(2) * v * v
+        for i in range(n, BLOCK):
+            level[k, i], var[k, i] = 0, 1
+    for i in range(n):
+        base[i] = np.float32(0) if lit[y, x0 + i] else costs[8]
+    for i in range(n, BLOCK):
+        base[i] = 0
     for s in range(states):
-        row = out[s]
-        gain[:] = 0
         count = np.float32(0)
         for k in range(bits):
-            if on[k, s] > 0:
-                count += 1
-                level = levels[k, y, x0:x1]
-                for i in range(n):
-                    gain[i] += level[i]
-        for i in range(n):
-            g = max(gain[i] / max(count, np.float32(1)), np.float32(1e-3))
-            gain[i] = g
-            d = g - np.float32(1)
-            row[i] = prior * d * d / g if g < 1 else np.float32(4) * prior * d * d
-            row[i] += np.float32(0) if lit[y, x0 + i] else costs[8]
+            count += on[k, s]
+        scale = np.float32(1) / max(count, np.float32(1))
+        for i in range(BLOCK):
+            gain[i] = 0
         for k in range(bits):
-            level, sd = levels[k, y, x0:x1], noise[y, x0:x1]
-            o, inv = on[k, s], np.float32(1) / span[k]
-            for i in range(n):
-                e = level[i] - o * gain[i]
-                v = sd[i] * inv
-                row[i] += min(e * e / (np.float32(2) * (v * v + model2 * gain[i] * gain[i])), cap)
+            o = on[k, s]
+            for i in range(BLOCK):
+                gain[i] += o * level[k, i]
+        row = out[s]
+        for i in range(BLOCK):
+            g = max(gain[i] * scale, np.float32(1e-3))
+            gain[i] = g
+            spread[i] = np.float32(2) * model2 * g * g
+            d = g - np.float32(1)
+            row[i] = (prior * d * d / g if g < 1 else np.float32(4) * prior * d * d) + base[i]
+        for k in range(bits):
+            o = on[k, s]
+            for i in range(BLOCK):
+                e = level[k, i] - o * gain[i]
+                t = e * e / (var[k, i] + spread[i])
+                row[i] += t if t < cap else cap
     for i in range(n):
         out[states, i] = costs[7] if lit[y, x0 + i] else np.float32(0)
+    for i in range(n, BLOCK):
+        for s in range(states + 1):
+            out[s, i] = 0
+    for i in range(n):
         usable = np.isfinite(noise[y, x0 + i])
         for k in range(bits):
             usable = usable and np.isfinite(levels[k, y, x0 + i])
         if not usable:
-            out[:, i] = 0
-
-
-#: Lines of `_order_columns`' blocks: their evidence is computed row by row (contiguous reads),
-#: then each line is decoded from it.
-BLOCK = 64
+            for s in range(states + 1):
+                out[s, i] = 0
 
 
 @numba.njit(cache=True, nogil=True, inline="always", fastmath=FAST, error_model="numpy")
@@ -219,13 +241,14 @@ def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], span
     ahead = np.full((states + 3, BLOCK), np.inf, dtype=np.float32)
     nothing = np.zeros((states + 1, BLOCK), dtype=np.float32)
     work = np.empty(BLOCK, np.float32)
+    scratch = np.empty((2 * bits + 3, BLOCK), np.float32)
     first, second = np.empty(BLOCK, np.float32), np.empty(BLOCK, np.float32)
     label = np.empty(BLOCK, np.int32)
     for block in blocks:
         x0 = block * BLOCK
         n = min(x0 + BLOCK, w) - x0  # the columns of a block beyond the image have no evidence
         for y in range(h):
-            emission(levels, noise, span, lit, on, costs, y, x0, n, cost[y], work)
+            emission(levels, noise, span, lit, on, costs, y, x0, n, cost[y], scratch)
         fwd[0, 1:states + 1] = cost[0, :states]
         fwd[0, dark] = cost[0, states]
         for y in range(1, h):
