@@ -1087,8 +1087,8 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
 @_overwrite_option
 def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str, decisions: str, timings: bool, report: Path | None, out_dir: Path | None, formats: tuple[str, ...],
-         workers: int | None, scheduler: str | None, resume: bool, overwrite: bool) -> int:
+         method: str, decisions: str, timings: bool, report: Path | None, out_dir: Path | None,
+         formats: tuple[str, ...], workers: int | None, scheduler: str | None, resume: bool, overwrite: bool) -> int:
     """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
     frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them, or a
     batch of single-shot frames.
@@ -1116,8 +1116,8 @@ def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Pat
             raise click.UsageError("a batch writes into --out DIR in the --format(s) asked for; "
                                    "--mat5, --ply, --npz and --timings are for one capture")
         return _scan_batch(files, spec, pattern_path, (calibration, camera_matrix, projector_matrix),
-                           method=method, decisions=decisions, out=out_dir, formats=formats or ("npz",), workers=workers,
-                           scheduler=scheduler, resume=resume, report=report, overwrite=overwrite)
+                           method=method, decisions=decisions, out=out_dir, formats=formats or ("npz",),
+                           workers=workers, scheduler=scheduler, resume=resume, report=report, overwrite=overwrite)
     if batch_options:
         raise click.UsageError("--out, --format, --workers, --scheduler and --resume are for batches of "
                                "single-shot frames")

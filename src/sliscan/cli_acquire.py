@@ -480,8 +480,8 @@ Examples:
 @_virtual_options
 @_overwrite_option
 def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str, resolution: tuple[int, int] | None,
-             exposure: float | None, gain: float | None, settle_s: float, method: str, decisions: str, frames: int | None,
-             seconds: float | None, record: Path | None, window: bool, motion_frames: int | None,
+             exposure: float | None, gain: float | None, settle_s: float, method: str, decisions: str,
+             frames: int | None, seconds: float | None, record: Path | None, window: bool, motion_frames: int | None,
              velocity: tuple[float, ...], spin: float, overwrite: bool, **virtual_args: Any) -> None:
     """Scan continuously: project one single-shot pattern, then scan every camera frame.
 

@@ -304,7 +304,8 @@ def _zero_stripe(stripe: NDArray[np.integer], dc: NDArray[np.float32], spec: Pat
     walked = passable & (rows > blocked)
     columns = np.nonzero(length)[0]
     spread = np.interp(np.arange(stripe.shape[1]), columns, reference[columns])
-    runs, _ = scipy.ndimage.label(candidate & (dc >= ZERO_STRIPE_SPREAD * spread), np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]]))
+    along_carriers = np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]])  # runs within a line
+    runs, _ = scipy.ndimage.label(candidate & (dc >= ZERO_STRIPE_SPREAD * spread), along_carriers)
     walked_share = np.bincount(runs[walked], minlength=runs.max() + 1) / np.maximum(np.bincount(runs.ravel()), 1)
     joined = walked_share >= ZERO_STRIPE_SPREAD_SHARE
     joined[0] = False
