@@ -65,6 +65,9 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
         for weight in (1.5, 2.0):
             specs[f"4-bit + phase (phase weight {weight:g})"] = base.with_(
                 phase_weight=weight, b_p=0.5 / (base.bits + len(base.phase_carriers) * weight))
+        # a finer fringe (1.5 stripes instead of 2): lower noise in projector lines, but a Gray
+        # code off by one stripe deep inside a stripe no longer unwraps to the right period
+        specs["4-bit + phase (period 1.5 stripes)"] = base.with_(phase_period=1.5 * base.phase_lines / base.stripes)
         for bits in (6, 8):
             carriers = tuple(k * width / 8 / bits for k in range(1, bits + 1))
             specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
