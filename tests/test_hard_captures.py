@@ -110,3 +110,20 @@ def test_cli_warns_when_almost_nothing_decodes(scan_folder: Path, small_rig: sim
     code, out, err = run_scan(scan_folder, blurred, monkeypatch)
     assert code == 0 and "points" in out and (scan_folder / "s.ply").exists()
     assert err.startswith("warning: capture.png: only ") and err.count("\n") == 1
+
+
+def test_exposure_thresholds() -> None:
+    """Dark: fewer than 1 % of the pixels reach `DARK_LEVEL`; saturated: more than half at 254."""
+    from sliscan.demodulate import DARK_LEVEL, check_exposure
+
+    image = np.zeros((100, 100), np.float32)
+    image.flat[:99] = DARK_LEVEL  # 0.99 % bright: dark
+    with pytest.raises(InputError, match="the capture is dark"):
+        check_exposure(image)
+    image.flat[:100] = DARK_LEVEL  # 1 %: enough light
+    check_exposure(image)
+    image.flat[:5001] = 1.0
+    with pytest.raises(InputError, match=r"the capture is saturated \(50% of pixels"):
+        check_exposure(image)
+    image.flat[5000] = 0.5
+    check_exposure(image)

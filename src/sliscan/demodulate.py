@@ -800,11 +800,13 @@ SATURATED_FRACTION = 0.5
 
 
 def check_exposure(image: NDArray[np.float32]) -> None:
-    """Refuse a capture too dark or too saturated to carry the pattern (one-line `InputError`)."""
-    if np.percentile(image, 99) < DARK_LEVEL:
+    """Refuse a capture too dark or too saturated to carry the pattern (one-line `InputError`).
+
+    Two counting passes (a percentile would sort: 40 ms more at 5 MP)."""
+    if np.count_nonzero(image >= DARK_LEVEL) < 0.01 * image.size:
         raise InputError(f"the capture is dark (99 % of pixels below {DARK_LEVEL:.0%} of full scale): is the projector "
                          f"on and the exposure long enough?")
-    saturated = float(np.mean(image >= SATURATED_LEVEL))
+    saturated = np.count_nonzero(image >= SATURATED_LEVEL) / image.size
     if saturated > SATURATED_FRACTION:
         raise InputError(f"the capture is saturated ({saturated:.0%} of pixels at full scale): shorten the exposure "
                          f"or dim the projector")
