@@ -64,6 +64,19 @@ def test_adaptive_window_keeps_a_step_out():
     assert np.all(adaptive.amplitude[0, 0, 305:320] < 1e-3)  # shadow side stays dark
 
 
+def test_misfit_judges_a_pixel_from_its_windows_side_of_a_depth_edge():
+    """A depth edge at x = 300: another code, other carrier phases and a darker, farther surface
+    behind it.  The pixels next to it decode from the window on their own side, and the misfit
+    (`Demodulated.misfit`) looks at that side too, so it stays near 0 on both sides; a short
+    window centred on them reached across the edge (misfit up to 0.31, above the decoder's
+    0.25, before the eleventh session)."""
+    left, carriers = synthetic_lines(amplitudes=(0.1, 0.0, 0.05, 0.02), slope=0, rng=np.random.default_rng(1))
+    right, _ = synthetic_lines(amplitudes=(0.0, 0.04, 0.02, 0.0), slope=0, dc=0.15, rng=np.random.default_rng(2))
+    out = demodulate_window(np.where(np.arange(600) < 300, left, right).astype(np.float32), carriers)
+    near = slice(288, 312)  # within a short window (12 px) of the edge on either side
+    assert np.all(out.misfit[0, near] < 0.05)
+
+
 def test_bandpass_demodulator_recovers_amplitudes():
     image, carriers = synthetic_lines(width=1200, slope=0)
     out = demodulate_bandpass(image, carriers)

@@ -41,8 +41,8 @@ class _WindowTables:
     For carrier n of line r and a window of length L starting at s, with ``t`` the offset
     from the window's centre: ``g[n, r, s]`` = mean of ``exp(-i w_rn x)`` and ``h[n, r, s]``
     = mean of ``t exp(-i w_rn x)`` over the window (closed forms: a geometric series times
-    ``exp(-i w s)``); ``near[n, r, x]`` = mean of ``exp(+i w_rn x)`` over the short window
-    around x; ``t2`` = mean of ``t**2``.
+    ``exp(-i w s)``); ``near[n, r, s]`` = mean of ``exp(+i w_rn x)`` over the short window
+    starting at s; ``t2`` = mean of ``t**2``.
     """
 
     phasors: NDArray[np.complex128]  # (C, lines, W)
@@ -67,8 +67,7 @@ class _WindowTables:
         series = np.exp(-1j * omega * j)  # (C, lines, L)
         g = phasors * series.mean(axis=-1, keepdims=True)
         h = phasors * (series * t).mean(axis=-1, keepdims=True)
-        near_start = np.clip(x - short // 2, 0, max(width - short, 0))
-        near = np.exp(1j * omega * near_start) * np.exp(1j * omega * np.arange(short)).mean(axis=-1, keepdims=True)
+        near = np.exp(1j * omega * x) * np.exp(1j * omega * np.arange(short)).mean(axis=-1, keepdims=True)
         pairs = tuple((n, m) for n in range(omega.shape[0]) for m in range(n, omega.shape[0]))
         sums = np.stack([_window_mean_phasor(omega[n] + omega[m], x, j) for n, m in pairs])
         diffs = np.stack([_window_mean_phasor(omega[n] - omega[m], x, j) for n, m in pairs])
@@ -100,7 +99,8 @@ def _flat_field(lines: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     return best_mean
 
 
-def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables) -> tuple[NDArray, ...]:
+def _fit_windows(cums: tuple, start: NDArray[np.intp], near_start: NDArray[np.intp],
+                 tables: _WindowTables) -> tuple[NDArray, ...]:
     """Least-squares fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` in each window.
 
     Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
@@ -111,8 +111,9 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables) ->
     carriers' couplings to each other (of the order of the window's rounding to whole
     pixels) are neglected.
 
-    Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...), prediction)``,
-    where `prediction` is the fitted model's mean over the short window around each pixel.
+    Returns ``(unexplained AC energy, AC energy, dc, amplitudes (C, ...), prediction,
+    observed)``, where `prediction` is the fitted model's mean over the short window starting
+    at `near_start` and `observed` the line's own mean there.
     """
     cum_i, cum_i2, cum_xi, cum_q = cums
     win = tables.window
@@ -144,9 +145,11 @@ def _fit_windows(cums: tuple, start: NDArray[np.intp], tables: _WindowTables) ->
         model_sq = model_sq + weight * (c[n] * c[m] * tables.sums[k][:, start]).real
         model_sq = model_sq + (2 * np.abs(c[n]) ** 2 if n == m else 4 * (c[n] * np.conj(c[m]) * tables.diffs[k][:, start]).real)
     unexplained = np.maximum(mean_sq - 2 * cross + model_sq, 0)
-    x = np.arange(start.size)
-    prediction = d + slope * (x - centre) + 2 * np.sum((c * tables.near).real, axis=0)
-    return unexplained, var, d, 2 * np.abs(c), prediction
+    short = tables.short
+    prediction = (d + slope * (near_start + (short - 1) / 2 - centre)
+                  + 2 * np.sum((c * tables.near[:, :, near_start]).real, axis=0))
+    observed = _running_mean(cum_i, near_start, near_start + short, short)
+    return unexplained, var, d, 2 * np.abs(c), prediction, observed
 
 
 def fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.intp], window: int, short: int,
@@ -169,16 +172,19 @@ def fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.in
     cums = (_cumsum0(block), _cumsum0(block * block), _cumsum0(block * x),
             [_cumsum0(block * ph) for ph in tables.phasors])
     placements = (0, -1, 1) if adaptive else (0,)
-    best = list(_fit_windows(cums, _window_bounds(w, window, placements[0])[0], tables))
+
+    def placed(placement: int) -> tuple[NDArray, ...]:  # the misfit's short window on the same side
+        return _fit_windows(cums, _window_bounds(w, window, placement)[0], _window_bounds(w, short, placement)[0],
+                            tables)
+
+    best = list(placed(placements[0]))
     centre_unexplained = best[0]
     for placement in placements[1:]:
-        fit = _fit_windows(cums, _window_bounds(w, window, placement)[0], tables)
+        fit = placed(placement)
         better = (fit[0] < best[0]) & (fit[0] < PLACEMENT_GAIN * centre_unexplained)
         for i, value in enumerate(fit):
             best[i] = np.where(better[None] if value.ndim == 3 else better, value, best[i])
-    unexplained, var, mean, amp, prediction = best
-    near_start, near_end = _window_bounds(w, short, 0)
-    observed = _running_mean(cums[0], near_start, near_end, short)
+    unexplained, var, mean, amp, prediction, observed = best
     misfit = np.abs(observed - prediction) / np.maximum(mean, 1e-6)
     # back to image units at the pixel
     return unexplained * flat**2, var * flat**2, mean * flat, amp * flat, misfit

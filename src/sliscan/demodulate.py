@@ -99,9 +99,10 @@ class Demodulated:
         window the model leaves unexplained; None for demodulators that do not compute it.
     misfit : (H, W) float32 array or None
         How badly the window's fitted model predicts the pixel's own neighbourhood (the mean
-        over the shortest carrier period around it), relative to the window's DC.  A pixel in
-        a shadow or on a surface narrower than the window, whose every window reaches light
-        from elsewhere, has a large misfit.  None for demodulators that do not compute it.
+        over the shortest carrier period next to it, on the side of its window), relative to
+        the window's DC: large where the light next to the pixel is of another level than its
+        window's DC and ramp describe (a shadow or another surface within that short window).
+        None for demodulators that do not compute it.
     """
 
     amplitude: NDArray[np.float32]
@@ -386,7 +387,9 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
     Each window start is fitted once.  A pixel keeps its centred window unless a one-sided
     one leaves less than `PLACEMENT_GAIN` of its unexplained energy and the least of all.
     The misfit compares the best model's mean over the short window (one period of the
-    highest carrier) around the pixel with the line's own mean there, relative to the DC.
+    highest carrier) next to the pixel with the line's own mean there, relative to the DC; the
+    short window lies on the chosen window's side (around the pixel for a centred window), so a
+    pixel decoded from the clean side of an edge is not judged by light from across it.
     """
     width, n_carriers = line.size, omega.size
     x = np.arange(width)
@@ -468,14 +471,17 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
         fit_u[s], fit_var[s] = max(mean_sq - 2 * cross[s] + model_sq[s], 0.0), max(mean_sq - m0[s] * m0[s], 0.0)
     chosen, near, prediction = np.empty(width, np.intp), np.empty(width, np.intp), np.empty(width)
     for xi in range(width):
-        best = _window_start(xi, width, window, 0)
+        best, placement = _window_start(xi, width, window, 0), 0
         for k in range(1, len(_PLACEMENTS) if adaptive else 1):
             s = _window_start(xi, width, window, _PLACEMENTS[k])
             if fit_u[s] < fit_u[best] and fit_u[s] < PLACEMENT_GAIN * fit_u[_window_start(xi, width, window, 0)]:
-                best = s
+                best, placement = s, _PLACEMENTS[k]
         chosen[xi] = best
-        near[xi] = min(max(xi - short // 2, 0), max(width - short, 0))
-        prediction[xi] = fit_d[best] + fit_slope[best] * (xi - (best + (window - 1) / 2))
+        # the short window on the chosen window's side of the pixel (centred for a centred one),
+        # so that next to an edge the misfit does not look across it either
+        ns = _window_start(xi, width, short, placement) if width >= short else 0
+        near[xi] = ns
+        prediction[xi] = fit_d[best] + fit_slope[best] * (ns + (short - 1) / 2 - (best + (window - 1) / 2))
     rotated = q  # the projections are no longer needed: their memory takes the carriers in image phase
     for n in range(n_carriers):
         for s in range(n_starts):  # the prediction's first product, once per start
@@ -486,8 +492,7 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
             c = fit_c[n, best]
             amp[n, xi] = 2 * np.sqrt(c.real ** 2 + c.imag ** 2) * flat[xi]  # not abs (hypot): 3x faster
     for xi in range(width):
-        best = chosen[xi]
-        ns = min(max(xi - short // 2, 0), width - short)
+        best, ns = chosen[xi], near[xi]
         observed = (cum_i[ns + short] - cum_i[ns]) / short
         f = flat[xi]
         unexplained[xi], var[xi], dc[xi] = fit_u[best] * f * f, fit_var[best] * f * f, fit_d[best] * f
