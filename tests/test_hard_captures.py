@@ -17,6 +17,7 @@ from click.testing import CliRunner
 from sliscan import patterns, sequences, simulate
 from sliscan._validate import InputError, to_uint8
 from sliscan.cli import main
+from sliscan.demodulate import DARK_LEVEL, check_exposure
 from sliscan.pipeline import Scanner
 from sliscan.types import PatternSpec
 
@@ -114,8 +115,6 @@ def test_cli_warns_when_almost_nothing_decodes(scan_folder: Path, small_rig: sim
 
 def test_exposure_thresholds() -> None:
     """Dark: fewer than 1 % of the pixels reach `DARK_LEVEL`; saturated: more than half at 254."""
-    from sliscan.demodulate import DARK_LEVEL, check_exposure
-
     image = np.zeros((100, 100), np.float32)
     image.flat[:99] = DARK_LEVEL  # 0.99 % bright: dark
     with pytest.raises(InputError, match="the capture is dark"):
