@@ -3,47 +3,97 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 import scipy.ndimage
+from numpy.typing import NDArray
 
-from sliscan.demodulate import STEP_APEX, STEP_SHARPNESS, STEP_THRESHOLD
-
-
-def _shifted(values: NDArray[np.float64], shift: int) -> NDArray[np.float64]:
-    """``values[:, x - shift]`` along axis 1 (edge values repeated beyond the ends)."""
-    if shift > 0:
-        return np.concatenate([np.repeat(values[:, :1], shift, axis=1), values[:, :-shift]], axis=1)
-    return np.concatenate([values[:, -shift:], np.repeat(values[:, -1:], -shift, axis=1)], axis=1)
+from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONSTANCY, STEP_ECHO, STEP_FIND, STEP_HEIGHT,
+                                STEP_MARGIN, STEP_MIN_BOX, STEP_THRESHOLD)
 
 
-def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, threshold: float = STEP_THRESHOLD,
-                  apex: float = STEP_APEX, sharpness: float = STEP_SHARPNESS) -> NDArray[np.float32]:
-    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring), as it was before the kernel."""
+def _ratio_means(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: NDArray[np.intp],
+                 hi: NDArray[np.intp]) -> NDArray[np.float64]:
+    """Weighted means of the lag ratio of each line over ``lo .. hi - 1`` (index arrays, broadcast
+    against the lines)."""
+    rows = np.arange(cum_g.shape[0])[:, None]
+    return (cum_g[rows, hi] - cum_g[rows, lo]) / np.maximum(cum_w[rows, hi] - cum_w[rows, lo], 1e-12)
+
+
+def _evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int) -> tuple[NDArray, NDArray]:
+    """`sliscan.demodulate._step_evidence` for all lines at once: (evidence, one_sided)."""
+    n, w = change.shape
+    x = np.arange(w)
+
+    def at(values: NDArray, index: NDArray, fill: float | bool) -> NDArray:  # values[:, index], fill beyond the line
+        inside = (index >= 0) & (index < w)
+        return np.where(inside, values[:, np.clip(index, 0, w - 1)], fill)
+
+    here = change
+    later_usable = at(usable, x + t, False)
+    later = np.where(later_usable, -at(change, x + t, 0.0), 0.0)
+    small, large = np.minimum(np.abs(here), np.abs(later)), np.maximum(np.abs(here), np.abs(later))
+    agree = usable & later_usable & (here * later > 0) & (small >= STEP_AGREEMENT * large)
+    before, after = at(change, x - t, 0.0), at(change, x + 2 * t, 0.0)
+    right_echo = at(usable, x - t, False) & (before * here < 0) & (np.abs(before) >= STEP_ECHO * np.abs(here))
+    left_echo = at(usable, x + 2 * t, False) & (after * later > 0) & (np.abs(after) >= STEP_ECHO * np.abs(later))
+    evidence = np.where(agree, 0.5 * (here + later), 0.0)
+    evidence = np.where(usable & ~later_usable & ~right_echo, here, evidence)
+    evidence = np.where(~usable & later_usable & ~left_echo, later, evidence)
+    return evidence, usable != later_usable
+
+
+def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
+                 threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
+    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring)."""
     h, w = img.shape
-    floor = np.float32(0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6))
-    logi = np.log(np.maximum(img, floor))
-    out = np.zeros((h, w), dtype=np.float64)
+    floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
+    log_albedo = np.zeros((h, w), dtype=np.float64)
+    x = np.arange(w)
     for period in np.unique(windows):  # lines of one window length together (a handful)
         rows = np.nonzero(windows == period)[0]
         t = int(period)
+        box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
         if 3 * t >= w:
             continue
-        lg, im = logi[rows].astype(np.float64), img[rows].astype(np.float64)
+        im = img[rows].astype(np.float64)
+        lg = np.log(np.maximum(im, floor))
         weighted, weight = np.zeros_like(lg), np.zeros_like(lg)
         weight[:, t:] = np.maximum(np.minimum(im[:, t:], im[:, :-t]), floor)
         weighted[:, t:] = weight[:, t:] * (lg[:, t:] - lg[:, :-t])
         zero = np.zeros((rows.size, 1))
         cum_g, cum_w = np.cumsum(np.hstack([zero, weighted]), axis=1), np.cumsum(np.hstack([zero, weight]), axis=1)
-        starts = np.arange(w)
-        ends = np.minimum(starts + t, w)
-        mean = (cum_g[:, ends] - cum_g[:, starts]) / np.maximum(cum_w[:, ends] - cum_w[:, starts], 1e-12)
-        peak = mean - 0.5 * (_shifted(mean, t) + _shifted(mean, -t))
-        strength = np.abs(peak)
-        q = max(int(round(apex * t)), 1)
-        fall = (mean - 0.5 * (_shifted(mean, q) + _shifted(mean, -q))) * np.sign(peak)
-        largest = scipy.ndimage.maximum_filter1d(strength, size=t | 1, axis=1, mode="nearest")
-        steps = (strength >= threshold) & (strength >= largest) & (fall >= sharpness * strength)
-        out[rows] = np.cumsum(np.where(steps, peak, 0.0), axis=1)
-    return np.exp(out).astype(np.float32)
+        usable = np.broadcast_to((x - box >= t) & (x + box <= w), (rows.size, w))
+        lo, mid, hi = np.clip(x - box, 0, w), x, np.clip(x + box, 0, w)
+        change = np.where(usable, _ratio_means(cum_g, cum_w, mid, hi) - _ratio_means(cum_g, cum_w, lo, mid), 0.0)
+        evidence, one_sided = _evidence(change, usable, t)
+        strength = np.abs(evidence)
+        largest = scipy.ndimage.maximum_filter1d(strength, size=2 * box + 1, axis=1, mode="constant")
+        candidate = (strength >= STEP_FIND * threshold) & (strength >= largest)
+        # one per box: a candidate within `box` after another one is a tie, and the first wins
+        count = np.hstack([np.zeros((rows.size, box + 1), np.intp), np.cumsum(candidate, axis=1)])
+        earlier = count[:, box:box + w] - count[:, :w]  # candidates in x - box .. x - 1
+        line, at = np.nonzero(candidate & (earlier == 0))
+        steps = np.zeros((rows.size, w))
+        for r in np.unique(line):  # each line's candidates in turn: a height depends on those kept before
+            found = at[line == r]
+            kept: list[tuple[int, float]] = []
+            for j, x0 in enumerate(found):
+                end = min(x0 + t, found[j + 1] if j + 1 < found.size else w)
+                lo, hi = max(x0 + STEP_MARGIN, t), end - STEP_MARGIN
+                if hi - lo < t // 4:
+                    continue
+                mid = (lo + hi) // 2
 
+                def mean(a: int, b: int) -> float:  # the ratio's mean less what kept steps add there
+                    span = max(cum_w[r, b] - cum_w[r, a], 1e-12)
+                    earlier_steps = sum(h * (cum_w[r, min(k + t, b)] - cum_w[r, a]) / span
+                                        for k, h in kept if k + t > a)
+                    return (cum_g[r, b] - cum_g[r, a]) / span - earlier_steps
 
+                first, second = mean(lo, mid), mean(mid, hi)
+                height = 0.5 * (first + second)
+                steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
+                if (steady or not one_sided[r, x0]) and abs(height) >= STEP_HEIGHT * threshold:
+                    kept.append((int(x0), height))
+                    steps[r, x0] = height
+        log_albedo[rows] = np.cumsum(steps, axis=1)
+    return np.exp(log_albedo).astype(np.float32)

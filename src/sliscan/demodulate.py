@@ -575,28 +575,91 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
 #: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`;
 #: the others were measured worse, see ``benchmarks/albedo_normalisation.py``).
 ALBEDO_ESTIMATES = ("steps", "closing", "envelopes", "guided", "notch-log", "notch")
-#: `_albedo_steps` defaults: the smallest step kept (log units: a reflectance ratio of e = 2.7),
-#: where its apex is measured (fraction of a window from the peak) and how sharp it must be
-#: there (fall over the step's height).  Chosen on the captures that measure them (1296x972
-#: rig, sphere and steps, checker 0.25/0.9 and smooth albedo, seeds 0 and 1), so they may fit
-#: them: a threshold of 0.7 gained 0.7 points less on the checker and lost 0.25 more on the
-#: smooth albedo; 1.3 missed many checker edges (log 0.9/0.25 = 1.28) and gained 6 points less.
+#: `_albedo_steps` defaults.  A step is a reflectance ratio of at least e ** `STEP_THRESHOLD`
+#: (log units: 2.7; a 0.25/0.9 checker is 1.28).  Candidates are where the lag-one-window log
+#: ratio of the line changes by at least `STEP_FIND` of that across a short box on either side
+#: (`STEP_BOX` of a window, at least `STEP_MIN_BOX` pixels; blur spreads the change, so less
+#: than the threshold), the largest within a box, and the two views of the change (at the
+#: step, and one window later where the ratio changes back) agreeing within `STEP_AGREEMENT`.
+#: The height is the ratio's weighted mean from the step to the next one (at most a window),
+#: leaving `STEP_MARGIN` pixels out at each end (blur); it must reach `STEP_HEIGHT` of the
+#: threshold.  Within a window of a line's end only one view exists: there the change must not
+#: be the echo of a step a window away (`STEP_ECHO`), and the ratio's two halves must agree
+#: within `STEP_CONSTANCY` of the height.  The threshold is the earlier detector's (chosen on
+#: the 1296x972 captures of issue 8); the rest were set on the 5 MP seed-0 captures and the
+#: 640x480 test rig, and checked on other seeds and rigs (README, Accuracy).
 STEP_THRESHOLD = 1.0
-STEP_APEX = 0.125
-STEP_SHARPNESS = 0.11
+STEP_BOX = 0.125
+STEP_MIN_BOX = 2
+STEP_FIND = 0.7
+STEP_AGREEMENT = 0.5
+STEP_HEIGHT = 1.0
+STEP_ECHO = 0.5
+STEP_CONSTANCY = 0.4
+STEP_MARGIN = 3
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _ratio_mean(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: int, hi: int) -> float:
+    """Weighted mean of the lag-one-window log ratio over pixels ``lo .. hi - 1``."""
+    return (cum_g[hi] - cum_g[lo]) / max(cum_w[hi] - cum_w[lo], 1e-12)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _earlier_steps(cum_w: NDArray[np.float64], kept: NDArray[np.intp], heights: NDArray[np.float64], n_kept: int,
+                   t: int, lo: int, hi: int) -> float:
+    """What the first `n_kept` steps (at `kept`, of `heights`, in order) add to the lag-`t` log
+    ratio's weighted mean over ``lo .. hi - 1``: a step at ``k`` adds its height up to ``k + t``."""
+    total = 0.0
+    span = max(cum_w[hi] - cum_w[lo], 1e-12)
+    for i in range(n_kept - 1, -1, -1):
+        until = kept[i] + t
+        if until <= lo:
+            break
+        total += heights[i] * (cum_w[min(until, hi)] - cum_w[lo]) / span
+    return total
 
 
 @numba.njit(cache=True, nogil=True)
-def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], apexes: NDArray[np.intp], floor: float,
-                       threshold: float, sharpness: float, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int, evidence: NDArray[np.float64],
+                   one_sided: NDArray[np.bool_]) -> None:
+    """Per pixel, the log step its two views agree on (0 where they do not), into `evidence`;
+    `one_sided` where only one view exists (within a window of the line's ends).
+
+    A step of ``L`` at ``x`` changes the lag-``t`` ratio by ``+L`` at ``x`` and by ``-L`` at
+    ``x + t`` (`change`, valid where `usable`)."""
+    w = change.size
+    for x in range(w):
+        here = change[x]
+        later_usable = x + t < w and usable[x + t]
+        later = -change[x + t] if later_usable else 0.0
+        one_sided[x] = usable[x] != later_usable
+        evidence[x] = 0.0
+        if usable[x] and later_usable:
+            if here * later > 0 and min(abs(here), abs(later)) >= STEP_AGREEMENT * max(abs(here), abs(later)):
+                evidence[x] = 0.5 * (here + later)
+        elif usable[x]:  # near the right end: not the echo of a step one window earlier
+            echo = x >= t and usable[x - t] and change[x - t] * here < 0 and abs(change[x - t]) >= STEP_ECHO * abs(here)
+            evidence[x] = 0.0 if echo else here
+        elif later_usable:  # near the left end: not the echo of a step one window later
+            echo = x + 2 * t < w and usable[x + 2 * t] and change[x + 2 * t] * later > 0 \
+                and abs(change[x + 2 * t]) >= STEP_ECHO * abs(later)
+            evidence[x] = 0.0 if echo else later
+
+
+@numba.njit(cache=True, nogil=True)
+def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
+                       rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
-    and `apexes` (the apex test's lag, pixels) per row.  Indices beyond a line's ends take the
-    value at the end."""
+    per row."""
     w = img.shape[1]
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
-    mean, peak, strength, logs = np.empty(w), np.empty(w), np.empty(w), np.empty(w)
+    logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
+    usable, one_sided = np.empty(w, np.bool_), np.empty(w, np.bool_)
+    found, kept, heights = np.empty(w, np.intp), np.empty(w, np.intp), np.empty(w)
     for r in rows:
-        t, q = windows[r], apexes[r]
+        t = windows[r]
+        box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
         if 3 * t >= w:
             out[r] = 1.0
             continue
@@ -608,52 +671,71 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], apex
                 wt = max(min(img[r, x], img[r, x - t]), floor)
                 g = wt * (logs[x] - logs[x - t])
             cum_g[x + 1], cum_w[x + 1] = cum_g[x] + g, cum_w[x] + wt
-        for u in range(w):
-            e = min(u + t, w)
-            mean[u] = (cum_g[e] - cum_g[u]) / max(cum_w[e] - cum_w[u], 1e-12)
         for x in range(w):
-            peak[x] = mean[x] - 0.5 * (mean[max(x - t, 0)] + mean[min(x + t, w - 1)])
-            strength[x] = abs(peak[x])
-        half = (t | 1) // 2
-        total, level = 0.0, 1.0  # level = exp(total), recomputed only at a step
+            usable[x] = x - box >= t and x + box <= w
+            change[x] = 0.0
+            if usable[x]:
+                change[x] = _ratio_mean(cum_g, cum_w, x, x + box) - _ratio_mean(cum_g, cum_w, x - box, x)
+        _step_evidence(change, usable, t, evidence, one_sided)
+        n_found = 0  # the largest evidence within a box on either side, one per box
         for x in range(w):
-            s = strength[x]
-            if s >= threshold:
+            s = abs(evidence[x])
+            if s >= STEP_FIND * threshold and (n_found == 0 or x - found[n_found - 1] > box):
                 largest = 0.0
-                for k in range(x - half, x + half + 1):
-                    largest = max(largest, strength[min(max(k, 0), w - 1)])
-                fall = (mean[x] - 0.5 * (mean[max(x - q, 0)] + mean[min(x + q, w - 1)])) * np.sign(peak[x])
-                if s >= largest and fall >= sharpness * s:
-                    total += peak[x]
-                    level = np.exp(total)
+                for k in range(max(x - box, 0), min(x + box + 1, w)):
+                    largest = max(largest, abs(evidence[k]))
+                if s >= largest:
+                    found[n_found] = x
+                    n_found += 1
+        total, level, j, n_kept = 0.0, 1.0, 0, 0
+        for x in range(w):
+            if j < n_found and found[j] == x:
+                # the height: the ratio from this step to the next (at most a window on), less
+                # what the steps kept within a window before still add to it there
+                end = min(x + t, found[j + 1] if j + 1 < n_found else w)
+                lo, hi = max(x + STEP_MARGIN, t), end - STEP_MARGIN
+                if hi - lo >= t // 4:
+                    mid = (lo + hi) // 2
+                    first = _ratio_mean(cum_g, cum_w, lo, mid) - _earlier_steps(cum_w, kept, heights, n_kept, t, lo,
+                                                                                 mid)
+                    second = _ratio_mean(cum_g, cum_w, mid, hi) - _earlier_steps(cum_w, kept, heights, n_kept, t, mid,
+                                                                                  hi)
+                    height = 0.5 * (first + second)
+                    steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
+                    if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
+                        kept[n_kept], heights[n_kept] = x, height
+                        n_kept += 1
+                        total += height
+                        level = np.exp(total)
+                j += 1
             out[r, x] = level
 
 
-def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *, threshold: float = STEP_THRESHOLD,
-                  apex: float = STEP_APEX, sharpness: float = STEP_SHARPNESS) -> NDArray[np.float32]:
+def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
+                  threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
     """Relative albedo made of the sharp steps found along each line (1 left of the first).
 
     Within one code the pattern repeats every window ``T`` along the line, so where the albedo
     steps by a factor ``r`` at ``x0`` the log capture minus itself one window earlier,
     ``g(u) = log I(u) - log I(u - T)``, is ``log r`` on exactly ``[x0, x0 + T)`` and 0 around it,
-    whatever the pattern.  Its mean over the window starting at ``u`` (weighted by the smaller
-    of the two intensities, so the noise of the dark troughs counts little) is a triangle
-    peaking at ``x0``.  A smooth albedo gradient gives a plateau instead, which the second
-    difference at lag ``T`` removes, and a smooth bump a rounded top, which the apex test
-    rejects: a step's triangle has fallen by `apex` of its height `apex` windows from its
-    peak, and must have fallen by at least `sharpness` of it.  Peaks of the second difference
-    beyond `threshold` (log units) that are the largest within a window are the steps; their
-    running sum along the line is the log albedo.  A code change or a depth edge rarely
-    passes all three tests; where one does, the estimate has a false step, which costs what
-    the true step would have.  Lines in threads (a compiled kernel, `_albedo_steps_rows`).
+    whatever the pattern: it steps up by ``log r`` at ``x0`` and back down at ``x0 + T``.  The
+    change of its mean (weighted by the smaller of the two intensities, so the noise of the dark
+    troughs counts little) across a short box on either side of each pixel finds both; a step
+    needs both views to agree, which a change of code or a depth edge (where ``g`` oscillates
+    with the pattern instead) rarely does with the same height, and the echo one window after
+    a step is not one (its other view is 0).  Boxes of an eighth of a window, not whole windows,
+    so that a strip of one reflectance narrower than a window (a checker square seen obliquely)
+    keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
+    what the steps kept within a window before it still add there (``g`` sums every step of
+    the last window).  The running sum of the heights along the line is the log albedo; a
+    smooth albedo changes ``g`` too slowly to count and is left to the flat field.  Lines in threads (a compiled kernel,
+    `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is tested.
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
-    apexes = np.maximum(np.round(apex * windows), 1).astype(np.intp)
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty(img.shape, dtype=np.float32)
-    over_rows(lambda rows: _albedo_steps_rows(img, windows, apexes, floor, threshold, sharpness, rows, out),
-              img.shape[0])
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, rows, out), img.shape[0])
     return out
 
 
@@ -669,9 +751,9 @@ def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimat
 
     Estimates (`estimate`; keyword `options` in brackets):
 
-    * ``"steps"`` (threshold, apex, sharpness; see `_albedo_steps`): only the sharp steps,
-      found where the capture stops repeating itself one carrier period later; between them
-      1, so a smooth albedo is left to the flat field.  The only one that helped (issue 8).
+    * ``"steps"`` (threshold; see `_albedo_steps`): only the sharp steps, found where the
+      capture stops repeating itself one carrier period later; between them 1, so a smooth
+      albedo is left to the flat field.  The only one that helped (issue 8).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
       pattern's peaks where the albedo varies within a period: it loses 7 points of stripe
