@@ -7,7 +7,7 @@ import scipy.ndimage
 from numpy.typing import NDArray
 
 from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONSTANCY, STEP_ECHO, STEP_FIND, STEP_HEIGHT,
-                                STEP_MARGIN, STEP_MIN_BOX, STEP_THRESHOLD)
+                                STEP_MARGIN, STEP_MIN_BOX, STEP_SPAN, STEP_THRESHOLD)
 
 
 def _ratio_means(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: NDArray[np.intp],
@@ -79,7 +79,7 @@ def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
             for j, x0 in enumerate(found):
                 end = min(x0 + t, found[j + 1] if j + 1 < found.size else w)
                 lo, hi = max(x0 + STEP_MARGIN, t), end - STEP_MARGIN
-                if hi - lo < t // 4:
+                if hi - lo < t // STEP_SPAN:
                     continue
                 mid = (lo + hi) // 2
 

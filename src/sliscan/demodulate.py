@@ -582,8 +582,8 @@ ALBEDO_ESTIMATES = ("steps", "closing", "envelopes", "guided", "notch-log", "not
 #: than the threshold), the largest within a box, and the two views of the change (at the
 #: step, and one window later where the ratio changes back) agreeing within `STEP_AGREEMENT`.
 #: The height is the ratio's weighted mean from the step to the next one (at most a window),
-#: leaving `STEP_MARGIN` pixels out at each end (blur); it must reach `STEP_HEIGHT` of the
-#: threshold.  Within a window of a line's end only one view exists: there the change must not
+#: leaving `STEP_MARGIN` pixels out at each end (blur), over at least ``1 / STEP_SPAN`` of a
+#: window; it must reach `STEP_HEIGHT` of the threshold.  Within a window of a line's end only one view exists: there the change must not
 #: be the echo of a step a window away (`STEP_ECHO`), and the ratio's two halves must agree
 #: within `STEP_CONSTANCY` of the height.  The threshold is the earlier detector's (chosen on
 #: the 1296x972 captures of issue 8); the rest were set on the 5 MP seed-0 captures and the
@@ -597,6 +597,7 @@ STEP_HEIGHT = 1.0
 STEP_ECHO = 0.5
 STEP_CONSTANCY = 0.4
 STEP_MARGIN = 3
+STEP_SPAN = 6
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -694,7 +695,7 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
                 # what the steps kept within a window before still add to it there
                 end = min(x + t, found[j + 1] if j + 1 < n_found else w)
                 lo, hi = max(x + STEP_MARGIN, t), end - STEP_MARGIN
-                if hi - lo >= t // 4:
+                if hi - lo >= t // STEP_SPAN:
                     mid = (lo + hi) // 2
                     first = _ratio_mean(cum_g, cum_w, lo, mid) - _earlier_steps(cum_w, kept, heights, n_kept, t, lo,
                                                                                  mid)
