@@ -583,11 +583,12 @@ ALBEDO_ESTIMATES = ("steps", "closing", "envelopes", "guided", "notch-log", "not
 #: step, and one window later where the ratio changes back) agreeing within `STEP_AGREEMENT`.
 #: The height is the ratio's weighted mean from the step to the next one (at most a window),
 #: leaving `STEP_MARGIN` pixels out at each end (blur), over at least ``1 / STEP_SPAN`` of a
-#: window; it must reach `STEP_HEIGHT` of the threshold.  Within a window of a line's end only one view exists: there the change must not
-#: be the echo of a step a window away (`STEP_ECHO`), and the ratio's two halves must agree
-#: within `STEP_CONSTANCY` of the height.  The threshold is the earlier detector's (chosen on
-#: the 1296x972 captures of issue 8); the rest were set on the 5 MP seed-0 captures and the
-#: 640x480 test rig, and checked on other seeds and rigs (README, Accuracy).
+#: window; it must reach `STEP_HEIGHT` of the threshold.  Within a window of a line's end only
+#: one view exists: there the change must not be the echo of a step a window away
+#: (`STEP_ECHO`), and the ratio's two halves must agree within `STEP_CONSTANCY` of the height.
+#: The threshold is the earlier detector's (chosen on the 1296x972 captures of issue 8); the
+#: rest were set on the 5 MP seed-0 captures and the 640x480 test rig, and checked on other
+#: seeds and rigs (README, Accuracy).
 STEP_THRESHOLD = 1.0
 STEP_BOX = 0.125
 STEP_MIN_BOX = 2
@@ -729,8 +730,9 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
     what the steps kept within a window before it still add there (``g`` sums every step of
     the last window).  The running sum of the heights along the line is the log albedo; a
-    smooth albedo changes ``g`` too slowly to count and is left to the flat field.  Lines in threads (a compiled kernel,
-    `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is tested.
+    smooth albedo changes ``g`` too slowly to count and is left to the flat field.  Lines in
+    threads (a compiled kernel, `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the
+    others) say what is tested.
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
