@@ -20,7 +20,7 @@ def _ratio_means(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: NDA
 
 def _evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int) -> tuple[NDArray, NDArray]:
     """`sliscan.demodulate._step_evidence` for all lines at once: (evidence, one_sided)."""
-    n, w = change.shape
+    w = change.shape[1]
     x = np.arange(w)
 
     def at(values: NDArray, index: NDArray, fill: float | bool) -> NDArray:  # values[:, index], fill beyond the line

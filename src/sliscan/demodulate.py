@@ -608,18 +608,18 @@ def _ratio_mean(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: int,
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _earlier_steps(cum_w: NDArray[np.float64], kept: NDArray[np.intp], heights: NDArray[np.float64], n_kept: int,
-                   t: int, lo: int, hi: int) -> float:
-    """What the first `n_kept` steps (at `kept`, of `heights`, in order) add to the lag-`t` log
-    ratio's weighted mean over ``lo .. hi - 1``: a step at ``k`` adds its height up to ``k + t``."""
-    total = 0.0
+def _ratio_less_steps(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], kept: NDArray[np.intp],
+                      heights: NDArray[np.float64], n_kept: int, t: int, lo: int, hi: int) -> float:
+    """`_ratio_mean` over ``lo .. hi - 1`` less what the first `n_kept` steps (at `kept`, of
+    `heights`, in order) add to it there: a step at ``k`` adds its height up to ``k + t``."""
     span = max(cum_w[hi] - cum_w[lo], 1e-12)
+    total = 0.0
     for i in range(n_kept - 1, -1, -1):
         until = kept[i] + t
         if until <= lo:
             break
         total += heights[i] * (cum_w[min(until, hi)] - cum_w[lo]) / span
-    return total
+    return _ratio_mean(cum_g, cum_w, lo, hi) - total
 
 
 @numba.njit(cache=True, nogil=True)
@@ -698,10 +698,8 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
                 lo, hi = max(x + STEP_MARGIN, t), end - STEP_MARGIN
                 if hi - lo >= t // STEP_SPAN:
                     mid = (lo + hi) // 2
-                    first = _ratio_mean(cum_g, cum_w, lo, mid) - _earlier_steps(cum_w, kept, heights, n_kept, t, lo,
-                                                                                 mid)
-                    second = _ratio_mean(cum_g, cum_w, mid, hi) - _earlier_steps(cum_w, kept, heights, n_kept, t, mid,
-                                                                                  hi)
+                    first = _ratio_less_steps(cum_g, cum_w, kept, heights, n_kept, t, lo, mid)
+                    second = _ratio_less_steps(cum_g, cum_w, kept, heights, n_kept, t, mid, hi)
                     height = 0.5 * (first + second)
                     steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
                     if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
