@@ -4,7 +4,9 @@ For sliscan's default 4-bit pattern and the window demodulator, scans the sphere
 under the realistic conditions of `accuracy.py` (smooth albedo 0.15-1.0, or the sharp 40 mm
 checker 0.25/0.9) after dividing the capture by each albedo estimate of
 `sliscan.demodulate.normalise_albedo` (or none, or the true albedo blurred like the camera
-blurs: a bound on what any estimate can give), and prints per capture, as Markdown:
+blurs: a bound on what any estimate can give; and two diagnostics that split the steps
+estimate's gap to it: the true albedo unblurred, and the true albedo's edges kept only where
+the estimate found a step), and prints per capture, as Markdown:
 
 * stripe accuracy: lit pixels decoded to exactly their true stripe, over lit pixels;
 * wrong stripes (issue 8): valid lit pixels more than one stripe from the truth, over lit pixels;
@@ -33,39 +35,66 @@ from sliscan.pipeline import Scanner
 from accuracy import conditions, render_cached
 
 SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
-#: variant -> (estimate, options of `normalise_albedo`); "none": no normalisation, "oracle":
-#: the true albedo.  "steps" is the default of `demodulate_window`.
+#: variant -> (estimate, options of `normalise_albedo`); "none": no normalisation; "steps" is
+#: the default of `demodulate_window`; "steps-soft": its steps blurred along the lines (a
+#: Gaussian of `SOFT_SIGMA` px, the camera's blur of a sharp edge); the others: `_truth_gain`.
 VARIANTS = {
     "none": (None, {}),
     "steps": ("steps", {}),
     "steps-0.7": ("steps", dict(threshold=0.7)),
+    "steps-soft": ("steps", {}),
     "closing": ("closing", {}),
     "envelopes": ("envelopes", {}),
     "guided": ("guided", {}),
     "notch-log": ("notch-log", {}),
     "notch": ("notch", {}),
     "oracle": ("oracle", {}),
+    "oracle-sharp": ("oracle-sharp", {}),
+    "oracle-found": ("oracle-found", {}),
 }
+#: Gaussian sigma (camera pixels) of the "steps-soft" variant's blur along the lines.
+SOFT_SIGMA = 0.8
+
+
+def _truth_gain(name: str, truth_albedo: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """The true albedo as the normalisation's gain: "oracle" blurred like the camera blurs
+    (sigma 1 px), "oracle-sharp" as rendered (pixels on an edge hold their areas' mean),
+    "oracle-found" blurred but with only the edges within 4 px of a step of the `steps`
+    estimate (along the lines): the estimate's edges, placed and sized exactly."""
+    albedo = np.where(np.isfinite(truth_albedo), truth_albedo, 1.0).astype(np.float64)
+    if name == "oracle-found":
+        found = np.zeros(albedo.shape, bool)
+        found[:, 1:] = np.abs(np.diff(np.log(steps), axis=1)) > 1e-6
+        near = scipy.ndimage.maximum_filter1d(found, 9, axis=1)
+        log_albedo = np.log(np.maximum(albedo, 1e-3))
+        change = np.diff(log_albedo, axis=1, prepend=log_albedo[:, :1]) * near
+        albedo = np.exp(log_albedo[:, :1] + np.cumsum(change, axis=1))
+    if name != "oracle-sharp":
+        albedo = scipy.ndimage.gaussian_filter(albedo, 1.0)
+    return np.maximum(albedo, 1e-3).astype(np.float32)
 
 
 class _Scanner(Scanner):
     """`Scanner` whose window demodulation divides the capture by a given albedo estimate."""
 
-    def __init__(self, spec, calibration, estimate, options, truth_albedo):
+    def __init__(self, spec, calibration, estimate, options, truth_albedo, soft=False):
         super().__init__(spec, calibration)
-        self._estimate, self._options, self._truth = estimate, options, truth_albedo
+        self._estimate, self._options, self._truth, self._soft = estimate, options, truth_albedo, soft
 
     def demodulate(self, image):
         img = np.asarray(image, dtype=np.float32)  # the default pattern: carriers along x
         carriers = detect_carriers(img, self.spec)
         if self._estimate is None:
             return demodulate_window(img, carriers, albedo=None), carriers
-        if self._estimate == "oracle":
-            albedo = np.where(np.isfinite(self._truth), self._truth, 1.0).astype(np.float32)
-            gain = np.maximum(scipy.ndimage.gaussian_filter(albedo, 1.0), 1e-3)
+        if self._estimate.startswith("oracle"):
+            steps = normalise_albedo(img, carriers)[1] if self._estimate == "oracle-found" else None
+            gain = _truth_gain(self._estimate, self._truth, steps)
             normalised = img / gain
         else:
             normalised, gain = normalise_albedo(img, carriers, estimate=self._estimate, **self._options)
+            if self._soft:
+                gain = scipy.ndimage.gaussian_filter1d(gain, SOFT_SIGMA, axis=1)
+                normalised = img / gain
         d = demodulate_window(normalised, carriers, albedo=None)
         # back to image units, as demodulate_window does with its own estimate
         return Demodulated(amplitude=d.amplitude * gain[None], dc=d.dc * gain, residual=d.residual, misfit=d.misfit,
@@ -109,7 +138,8 @@ def main() -> None:
                                         lambda: simulate.render(rig, scene, image, conditions(albedo, seed)))
                 for name in args.variants.split(","):
                     estimate, options = VARIANTS[name]
-                    scanner = _Scanner(spec, rig.calibration, estimate, options, capture.truth.albedo)
+                    scanner = _Scanner(spec, rig.calibration, estimate, options, capture.truth.albedo,
+                                       soft=name == "steps-soft")
                     t0 = time.perf_counter()
                     result = scanner.scan(capture.image)
                     seconds = time.perf_counter() - t0
