@@ -42,7 +42,7 @@ VARIANTS = {
     "none": (None, {}),
     "steps": ("steps", {}),
     "steps-0.7": ("steps", dict(threshold=0.7)),
-    "steps-soft": ("steps", {}),
+    "steps-soft": ("steps-soft", {}),
     "closing": ("closing", {}),
     "envelopes": ("envelopes", {}),
     "guided": ("guided", {}),
@@ -77,9 +77,9 @@ def _truth_gain(name: str, truth_albedo: np.ndarray, steps: np.ndarray) -> np.nd
 class _Scanner(Scanner):
     """`Scanner` whose window demodulation divides the capture by a given albedo estimate."""
 
-    def __init__(self, spec, calibration, estimate, options, truth_albedo, soft=False):
+    def __init__(self, spec, calibration, estimate, options, truth_albedo):
         super().__init__(spec, calibration)
-        self._estimate, self._options, self._truth, self._soft = estimate, options, truth_albedo, soft
+        self._estimate, self._options, self._truth = estimate, options, truth_albedo
 
     def demodulate(self, image):
         img = np.asarray(image, dtype=np.float32)  # the default pattern: carriers along x
@@ -90,11 +90,11 @@ class _Scanner(Scanner):
             steps = normalise_albedo(img, carriers)[1] if self._estimate == "oracle-found" else None
             gain = _truth_gain(self._estimate, self._truth, steps)
             normalised = img / gain
+        elif self._estimate == "steps-soft":
+            gain = scipy.ndimage.gaussian_filter1d(normalise_albedo(img, carriers)[1], SOFT_SIGMA, axis=1)
+            normalised = img / gain
         else:
             normalised, gain = normalise_albedo(img, carriers, estimate=self._estimate, **self._options)
-            if self._soft:
-                gain = scipy.ndimage.gaussian_filter1d(gain, SOFT_SIGMA, axis=1)
-                normalised = img / gain
         d = demodulate_window(normalised, carriers, albedo=None)
         # back to image units, as demodulate_window does with its own estimate
         return Demodulated(amplitude=d.amplitude * gain[None], dc=d.dc * gain, residual=d.residual, misfit=d.misfit,
@@ -138,8 +138,7 @@ def main() -> None:
                                         lambda: simulate.render(rig, scene, image, conditions(albedo, seed)))
                 for name in args.variants.split(","):
                     estimate, options = VARIANTS[name]
-                    scanner = _Scanner(spec, rig.calibration, estimate, options, capture.truth.albedo,
-                                       soft=name == "steps-soft")
+                    scanner = _Scanner(spec, rig.calibration, estimate, options, capture.truth.albedo)
                     t0 = time.perf_counter()
                     result = scanner.scan(capture.image)
                     seconds = time.perf_counter() - t0
