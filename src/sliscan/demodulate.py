@@ -279,7 +279,7 @@ def _short_window(carriers: Carriers) -> int:
 
 #: A one-sided window replaces the centred one where it leaves less than this fraction of
 #: the centred window's unexplained energy.  0.7 since the thirteenth session (0.5 before):
-#: on captures of three rigs and seeds not used to choose it, 0.3-1.6 points more right
+#: on captures of two rigs and three seeds not used to choose it, 0.2-1.6 points more right
 #: stripes with every pattern and scene, for up to 0.15 point more stripes off by more than
 #: one (README, Design choices).
 PLACEMENT_GAIN = 0.7
@@ -534,8 +534,9 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         Also fit the windows that end and start at the pixel, and keep the one that leaves
         the least AC energy unexplained (absolute, so a dark window in shadow beats one that
         straddles the shadow border).  The centred window is kept unless a one-sided one
-        leaves less than `PLACEMENT_GAIN` of its unexplained energy: where the code changes gradually
-        across the window (an oblique stripe border) the centred fit is the unbiased one.
+        leaves less than `PLACEMENT_GAIN` of its unexplained energy: where the code changes
+        gradually across the window (an oblique stripe border) the centred fit is the
+        unbiased one.
         If false, always the centred window.
     albedo : str or None
         Albedo estimate the capture is divided by before the fit (`normalise_albedo`; the
