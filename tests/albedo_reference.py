@@ -41,11 +41,10 @@ def _evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int) ->
     return evidence, usable != later_usable
 
 
-def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
-                 threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
-    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring)."""
+def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshold: float,
+                   floor: float) -> NDArray[np.float64]:
+    """The log height of every step found reading the lines left to right, at its pixel."""
     h, w = img.shape
-    floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     log_albedo = np.zeros((h, w), dtype=np.float64)
     x = np.arange(w)
     for period in np.unique(windows):  # lines of one window length together (a handful)
@@ -95,5 +94,29 @@ def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
                 if (steady or not one_sided[r, x0]) and abs(height) >= STEP_HEIGHT * threshold:
                     kept.append((int(x0), height))
                     steps[r, x0] = height
-        log_albedo[rows] = np.cumsum(steps, axis=1)
-    return np.exp(log_albedo).astype(np.float32)
+        log_albedo[rows] = steps
+    return log_albedo
+
+
+def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
+                 threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
+    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring): the steps found either
+    way, heights averaged where both ways found one within a box."""
+    w = img.shape[1]
+    floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
+    ahead = _one_way_steps(img, windows, threshold, floor)
+    # read right to left: a step up there at x' is a step down here, starting at w - x'
+    back = np.zeros_like(ahead)
+    back[:, 1:] = -_one_way_steps(np.ascontiguousarray(img[:, ::-1]), windows, threshold, floor)[:, :0:-1]
+    delta = ahead.copy()
+    for r in np.nonzero((back != 0).any(axis=1))[0]:
+        box = max(STEP_MIN_BOX, int(round(STEP_BOX * int(windows[r]))))
+        free = np.flatnonzero(back[r])
+        for x in np.flatnonzero(ahead[r]):
+            near = free[np.abs(free - x) <= box]
+            if near.size:  # the nearest, the leftmost of two as near
+                m = near[np.argmin(np.abs(near - x))]
+                delta[r, x] = 0.5 * (ahead[r, x] + back[r, m])
+                free = free[free != m]
+        delta[r, free] += back[r, free]
+    return np.exp(np.cumsum(delta, axis=1)).astype(np.float32)

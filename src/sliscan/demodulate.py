@@ -654,65 +654,116 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 
 @numba.njit(cache=True, nogil=True)
+def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float,
+                kept: NDArray[np.intp], heights: NDArray[np.float64]) -> int:
+    """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
+    `box` px): their pixels into `kept` (ascending), log heights into `heights`; returns how
+    many."""
+    w = line.size
+    cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
+    logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
+    usable, one_sided = np.empty(w, np.bool_), np.empty(w, np.bool_)
+    found = np.empty(w, np.intp)
+    for x in range(w):
+        logs[x] = np.log(max(line[x], floor))
+    for x in range(w):
+        g = wt = 0.0
+        if x >= t:
+            wt = max(min(line[x], line[x - t]), floor)
+            g = wt * (logs[x] - logs[x - t])
+        cum_g[x + 1], cum_w[x + 1] = cum_g[x] + g, cum_w[x] + wt
+    for x in range(w):
+        usable[x] = x - box >= t and x + box <= w
+        change[x] = 0.0
+        if usable[x]:
+            change[x] = _ratio_mean(cum_g, cum_w, x, x + box) - _ratio_mean(cum_g, cum_w, x - box, x)
+    _step_evidence(change, usable, t, evidence, one_sided)
+    n_found = 0  # the largest evidence within a box on either side, one per box
+    for x in range(w):
+        s = abs(evidence[x])
+        if s >= STEP_FIND * threshold and (n_found == 0 or x - found[n_found - 1] > box):
+            largest = 0.0
+            for k in range(max(x - box, 0), min(x + box + 1, w)):
+                largest = max(largest, abs(evidence[k]))
+            if s >= largest:
+                found[n_found] = x
+                n_found += 1
+    n_kept = 0
+    for j in range(n_found):
+        # the height: the ratio from this step to the next (at most a window on), less what
+        # the steps kept within a window before still add to it there
+        x = found[j]
+        end = min(x + t, found[j + 1] if j + 1 < n_found else w)
+        lo, hi = max(x + STEP_MARGIN, t), end - STEP_MARGIN
+        if hi - lo >= t // STEP_SPAN:
+            mid = (lo + hi) // 2
+            first = _ratio_less_steps(cum_g, cum_w, kept, heights, n_kept, t, lo, mid)
+            second = _ratio_less_steps(cum_g, cum_w, kept, heights, n_kept, t, mid, hi)
+            height = 0.5 * (first + second)
+            steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
+            if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
+                kept[n_kept], heights[n_kept] = x, height
+                n_kept += 1
+    return n_kept
+
+
+@numba.njit(cache=True, nogil=True)
+def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], n_ahead: int, back: NDArray[np.intp],
+                   back_h: NDArray[np.float64], n_back: int, box: int, out: NDArray[np.float32]) -> None:
+    """The relative albedo of one line ``(W,)`` into `out`, from the steps found reading it
+    left to right (`ahead`, ascending pixels, log heights `ahead_h`) and right to left (`back`:
+    pixels of the reversed line, ascending there, with their heights there): every step found
+    either way, the two heights averaged where both found one within `box` px."""
+    w = out.size
+    delta = np.zeros(w)
+    used = np.zeros(n_back, np.bool_)
+    k = n_back - 1  # the reversed line's steps from the right end: ascending pixels here
+    for i in range(n_ahead):
+        x = ahead[i]
+        while k >= 0 and w - back[k] < x - box:
+            k -= 1
+        nearest, height = -1, ahead_h[i]
+        for m in range(k, -1, -1):
+            at = w - back[m]
+            if at > x + box:
+                break
+            if not used[m] and (nearest < 0 or abs(at - x) < abs(w - back[nearest] - x)):
+                nearest = m
+        if nearest >= 0:
+            used[nearest] = True
+            height = 0.5 * (height - back_h[nearest])
+        delta[x] += height
+    for m in range(n_back):
+        if not used[m]:  # a step up read right to left is a step down read left to right
+            delta[w - back[m]] -= back_h[m]
+    total, level = 0.0, 1.0
+    for x in range(w):
+        if delta[x] != 0.0:
+            total += delta[x]
+            level = np.exp(total)
+        out[x] = level
+
+
+@numba.njit(cache=True, nogil=True)
 def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
                        rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
     per row."""
     w = img.shape[1]
-    cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
-    logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
-    usable, one_sided = np.empty(w, np.bool_), np.empty(w, np.bool_)
-    found, kept, heights = np.empty(w, np.intp), np.empty(w, np.intp), np.empty(w)
+    reversed_line = np.empty(w, np.float32)
+    ahead, back = np.empty(w, np.intp), np.empty(w, np.intp)
+    ahead_h, back_h = np.empty(w), np.empty(w)
     for r in rows:
         t = windows[r]
-        box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
         if 3 * t >= w:
             out[r] = 1.0
             continue
+        box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
         for x in range(w):
-            logs[x] = np.log(max(img[r, x], floor))
-        for x in range(w):
-            g = wt = 0.0
-            if x >= t:
-                wt = max(min(img[r, x], img[r, x - t]), floor)
-                g = wt * (logs[x] - logs[x - t])
-            cum_g[x + 1], cum_w[x + 1] = cum_g[x] + g, cum_w[x] + wt
-        for x in range(w):
-            usable[x] = x - box >= t and x + box <= w
-            change[x] = 0.0
-            if usable[x]:
-                change[x] = _ratio_mean(cum_g, cum_w, x, x + box) - _ratio_mean(cum_g, cum_w, x - box, x)
-        _step_evidence(change, usable, t, evidence, one_sided)
-        n_found = 0  # the largest evidence within a box on either side, one per box
-        for x in range(w):
-            s = abs(evidence[x])
-            if s >= STEP_FIND * threshold and (n_found == 0 or x - found[n_found - 1] > box):
-                largest = 0.0
-                for k in range(max(x - box, 0), min(x + box + 1, w)):
-                    largest = max(largest, abs(evidence[k]))
-                if s >= largest:
-                    found[n_found] = x
-                    n_found += 1
-        total, level, j, n_kept = 0.0, 1.0, 0, 0
-        for x in range(w):
-            if j < n_found and found[j] == x:
-                # the height: the ratio from this step to the next (at most a window on), less
-                # what the steps kept within a window before still add to it there
-                end = min(x + t, found[j + 1] if j + 1 < n_found else w)
-                lo, hi = max(x + STEP_MARGIN, t), end - STEP_MARGIN
-                if hi - lo >= t // STEP_SPAN:
-                    mid = (lo + hi) // 2
-                    first = _ratio_less_steps(cum_g, cum_w, kept, heights, n_kept, t, lo, mid)
-                    second = _ratio_less_steps(cum_g, cum_w, kept, heights, n_kept, t, mid, hi)
-                    height = 0.5 * (first + second)
-                    steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
-                    if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
-                        kept[n_kept], heights[n_kept] = x, height
-                        n_kept += 1
-                        total += height
-                        level = np.exp(total)
-                j += 1
-            out[r, x] = level
+            reversed_line[x] = img[r, w - 1 - x]
+        n_ahead = _line_steps(img[r], t, box, floor, threshold, ahead, ahead_h)
+        n_back = _line_steps(reversed_line, t, box, floor, threshold, back, back_h)
+        _two_way_level(ahead, ahead_h, n_ahead, back, back_h, n_back, box, out[r])
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
@@ -731,10 +782,14 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     so that a strip of one reflectance narrower than a window (a checker square seen obliquely)
     keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
     what the steps kept within a window before it still add there (``g`` sums every step of
-    the last window).  The running sum of the heights along the line is the log albedo; a
-    smooth albedo changes ``g`` too slowly to count and is left to the flat field.  Lines in
-    threads (a compiled kernel, `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the
-    others) say what is tested.
+    the last window).  So a step the detector misses spoils the heights of the steps after it
+    within a window, which may then be rejected in turn; read right to left, each height is
+    measured on the span before its step instead, where the misses are others.  Each line is
+    read both ways (`_line_steps`): a step found either way is kept, and where both ways found
+    one within a box its height is the mean of the two (`_two_way_level`).  The running sum of
+    the heights along the line is the log albedo; a smooth albedo changes ``g`` too slowly to
+    count and is left to the flat field.  Lines in threads (a compiled kernel,
+    `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is tested.
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
