@@ -1,12 +1,15 @@
 """Carrier detection and demodulation (thesis 3.3-3.4)."""
 
+import functools
+
 import numpy as np
 import pytest
+import scipy.ndimage
 
 from sliscan import InputError, patterns, simulate
 from sliscan.decode import decode
-from sliscan.demodulate import (Carriers, _albedo_steps, demodulate, demodulate_bandpass, demodulate_window, detect_carriers,
-                                 normalise_albedo)
+from sliscan.demodulate import (STEP_BOX, STEP_MIN_BOX, STEP_THRESHOLD, Carriers, _albedo_steps, _line_steps, demodulate,
+                                demodulate_bandpass, demodulate_window, detect_carriers, normalise_albedo)
 from sliscan.evaluate import true_stripes
 
 
@@ -244,17 +247,56 @@ def test_albedo_normalisation_decodes_a_checker_better(small_rig):
     assert figures("smooth", "steps")[0] == pytest.approx(figures("smooth", None)[0], abs=0.01)
 
 
-def test_albedo_steps_kernel_equals_the_numpy_form():
-    from albedo_reference import albedo_steps
-
+@functools.lru_cache(maxsize=1)
+def _checkered_sphere_640():
+    """The sphere under a 0.25 / 0.9 checker on the 640x480 rig: (capture, image in [0, 1],
+    windows per line).  Squares narrower than a window along its limb, steps near the lines'
+    ends."""
     rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768))
     spec = patterns.default_spec((1024, 768))
     conditions = simulate.Conditions(albedo=simulate.CheckerAlbedo(square_mm=40, low=0.25, high=0.9), seed=2)
-    # the sphere: squares narrower than a window along its limb, steps near the lines' ends
-    image = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions).image
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+    image = capture.image
     img = np.asarray(image, np.float32) / np.float32(255) if image.dtype == np.uint8 else np.asarray(image, np.float32)
-    windows = np.broadcast_to(detect_carriers(img, spec).line_windows(), (img.shape[0],))
+    return capture, img, np.broadcast_to(detect_carriers(img, spec).line_windows(), (img.shape[0],))
+
+
+def test_albedo_steps_kernel_equals_the_numpy_form():
+    from albedo_reference import albedo_steps
+
+    _, img, windows = _checkered_sphere_640()
     kernel, reference = _albedo_steps(img, windows), albedo_steps(img, windows)
     assert np.mean(reference != 1) > 0.2  # the checker's steps were found
     # the same sums in another order: a step at a threshold may flip
     assert np.mean(np.isclose(kernel, reference, rtol=1e-4)) > 0.999
+
+
+def test_albedo_steps_read_both_ways_find_more_true_edges():
+    """A step missed along a line spoils the heights of the next ones within a window; read
+    the other way, the heights are measured on the other side.  On the checkered sphere the
+    two ways find more of the true edges (steps of the rendered albedo by more than a factor
+    1.65) than the left-to-right reading alone, within 2 px: measured 69.6 -> 71.9 % (seed 3:
+    69.5 -> 71.8 %; 800x600: 74.1 -> 76.1 %), with 1.7 % of the steps more than 2 px from a
+    true edge (one way: 1.1 %).  Margins: 1.5 points gained, 2.5 % stray."""
+    capture, img, windows = _checkered_sphere_640()
+    h, w = img.shape
+    floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
+    one_way = np.zeros((h, w), bool)
+    kept, heights = np.empty(w, np.intp), np.empty(w)
+    for r in range(h):
+        t = int(windows[r])
+        n = _line_steps(img[r], t, max(STEP_MIN_BOX, int(round(STEP_BOX * t))), floor, STEP_THRESHOLD, kept, heights)
+        one_way[r, kept[:n]] = True
+    two_ways = np.zeros((h, w), bool)
+    two_ways[:, 1:] = np.diff(np.log(_albedo_steps(img, windows)), axis=1) != 0
+    log_albedo = np.log(np.where(np.isfinite(capture.truth.albedo), capture.truth.albedo, 1.0))
+    true_edge = np.zeros((h, w), bool)
+    true_edge[:, 1:] = np.abs(np.diff(log_albedo, axis=1)) > 0.5
+    near = functools.partial(scipy.ndimage.maximum_filter1d, size=5, axis=1)
+
+    def found_and_stray(steps):
+        return (true_edge & near(steps)).sum() / true_edge.sum(), (steps & ~near(true_edge)).sum() / steps.sum()
+
+    (found_one, _), (found_two, stray_two) = found_and_stray(one_way), found_and_stray(two_ways)
+    assert found_two >= found_one + 0.015
+    assert stray_two <= 0.025
