@@ -8,8 +8,8 @@ import scipy.ndimage
 
 from sliscan import InputError, patterns, simulate
 from sliscan.decode import decode
-from sliscan.demodulate import (STEP_BOX, STEP_MIN_BOX, STEP_THRESHOLD, Carriers, _albedo_steps, _line_steps, demodulate,
-                                demodulate_bandpass, demodulate_window, detect_carriers, normalise_albedo)
+from sliscan.demodulate import (STEP_BOX, STEP_MIN_BOX, STEP_THRESHOLD, Carriers, _albedo_steps, _line_steps,
+                                demodulate, demodulate_bandpass, demodulate_window, detect_carriers, normalise_albedo)
 from sliscan.evaluate import true_stripes
 
 
