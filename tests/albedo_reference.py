@@ -45,7 +45,7 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
                    floor: float) -> NDArray[np.float64]:
     """The log height of every step found reading the lines left to right, at its pixel."""
     h, w = img.shape
-    found = np.zeros((h, w), dtype=np.float64)
+    step_heights = np.zeros((h, w), dtype=np.float64)
     x = np.arange(w)
     for period in np.unique(windows):  # lines of one window length together (a handful)
         rows = np.nonzero(windows == period)[0]
@@ -94,8 +94,8 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
                 if (steady or not one_sided[r, x0]) and abs(height) >= STEP_HEIGHT * threshold:
                     kept.append((int(x0), height))
                     steps[r, x0] = height
-        found[rows] = steps
-    return found
+        step_heights[rows] = steps
+    return step_heights
 
 
 def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
