@@ -36,11 +36,13 @@ from accuracy import conditions, render_cached
 
 SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
 #: variant -> (estimate, options of `normalise_albedo`); "none": no normalisation; "steps" is
-#: the default of `demodulate_window`; "steps-soft": its steps blurred along the lines (a
+#: the default of `demodulate_window`; "steps-one-way": its lines read left to right only (the
+#: detector until the fourteenth session); "steps-soft": its steps blurred along the lines (a
 #: Gaussian of `SOFT_SIGMA` px, the camera's blur of a sharp edge); the others: `_truth_gain`.
 VARIANTS = {
     "none": (None, {}),
     "steps": ("steps", {}),
+    "steps-one-way": ("steps", dict(both_ways=False)),
     "steps-0.7": ("steps", dict(threshold=0.7)),
     "steps-soft": ("steps-soft", {}),
     "closing": ("closing", {}),

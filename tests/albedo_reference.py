@@ -102,7 +102,6 @@ def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
                  threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
     """`sliscan.demodulate._albedo_steps` in numpy (see its docstring): the steps found either
     way, heights averaged where both ways found one within a box."""
-    w = img.shape[1]
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     ahead = _one_way_steps(img, windows, threshold, floor)
     # read right to left: a step up there at x' is a step down here, starting at w - x'

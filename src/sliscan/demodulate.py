@@ -746,7 +746,7 @@ def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], n_ahea
 
 @numba.njit(cache=True, nogil=True)
 def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
-                       rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+                       both_ways: bool, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
     per row."""
     w = img.shape[1]
@@ -759,15 +759,16 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
             out[r] = 1.0
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        for x in range(w):
-            reversed_line[x] = img[r, w - 1 - x]
-        n_ahead = _line_steps(img[r], t, box, floor, threshold, ahead, ahead_h)
-        n_back = _line_steps(reversed_line, t, box, floor, threshold, back, back_h)
+        n_ahead, n_back = _line_steps(img[r], t, box, floor, threshold, ahead, ahead_h), 0
+        if both_ways:
+            for x in range(w):
+                reversed_line[x] = img[r, w - 1 - x]
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, back, back_h)
         _two_way_level(ahead, ahead_h, n_ahead, back, back_h, n_back, box, out[r])
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
-                  threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
+                  threshold: float = STEP_THRESHOLD, both_ways: bool = True) -> NDArray[np.float32]:
     """Relative albedo made of the sharp steps found along each line (1 left of the first).
 
     Within one code the pattern repeats every window ``T`` along the line, so where the albedo
@@ -786,7 +787,8 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     within a window, which may then be rejected in turn; read right to left, each height is
     measured on the span before its step instead, where the misses are others.  Each line is
     read both ways (`_line_steps`): a step found either way is kept, and where both ways found
-    one within a box its height is the mean of the two (`_two_way_level`).  The running sum of
+    one within a box its height is the mean of the two (`_two_way_level`; `both_ways` False:
+    left to right only, as until the fourteenth session).  The running sum of
     the heights along the line is the log albedo; a smooth albedo changes ``g`` too slowly to
     count and is left to the flat field.  Lines in threads (a compiled kernel,
     `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is tested.
@@ -795,12 +797,12 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty(img.shape, dtype=np.float32)
-    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, rows, out), img.shape[0])
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, both_ways, rows, out), img.shape[0])
     return out
 
 
 def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
-                     **options: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+                     **options: float | bool) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Divide a capture by an edge-preserving estimate of its albedo, line by line along axis 1.
 
     A reflectance edge multiplies the whole pattern, so inside a window that straddles it the
@@ -811,7 +813,7 @@ def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimat
 
     Estimates (`estimate`; keyword `options` in brackets):
 
-    * ``"steps"`` (threshold; see `_albedo_steps`): only the sharp steps, found where the
+    * ``"steps"`` (threshold, both_ways; see `_albedo_steps`): only the sharp steps, found where the
       capture stops repeating itself one carrier period later; between them 1, so a smooth
       albedo is left to the flat field.  The only one that helped (issue 8).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
