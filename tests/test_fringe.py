@@ -1,6 +1,7 @@
 """The phase channel: pattern, self-calibrated levels, run-limited smoothing, unwrapping, scans."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -92,6 +93,38 @@ def test_channel_levels_recovers_gains_and_offsets_on_a_lopsided_scene(rng):
     # so its level is the least determined (measured: 5 % off; 0.5 % over the whole circle)
     np.testing.assert_allclose(levels.gain / levels.gain[0], gain / gain[0], rtol=0.06)
     np.testing.assert_allclose(levels.offset / levels.gain, offset / gain, atol=0.03)
+
+
+def test_level_samples_average_along_the_phase_so_noise_does_not_bias_the_levels(rng):
+    # a fringe along the rows (period 96 px), each pixel's ratios with noise a third of the weakest
+    # carrier's gain: fitted from lone pixels the noise in each pixel's phase biases the levels
+    # (errors in variables); the mean of 13 pixels along the phase direction has 1/13 of the variance
+    spec = patterns.phase_spec((1024, 768))
+    height, width = 1200, 300
+    phase = 2 * np.pi * np.arange(height)[:, None] / 96.0 + 0.3 * np.sin(np.arange(width) / 40.0)[None, :]
+    gain, offset = np.array([0.07, 0.05, 0.03]), np.array([0.012, 0.010, 0.006])
+    fringes = 0.5 * (1 + np.cos(phase[None] - phase_shifts(spec)[:, None, None]))
+    dc = np.full((height, width), 100.0, np.float32)
+    amplitude = np.zeros((spec.bits + 3, height, width), np.float32)
+    amplitude[spec.bits:] = (offset[:, None, None] + gain[:, None, None] * fringes
+                             + rng.normal(0, 0.01, fringes.shape)) * dc
+    demod = SimpleNamespace(amplitude=amplitude, dc=dc)
+    valid, stripes = np.ones((height, width), bool), np.zeros((height, width), np.int16)
+    valid[600:604] = False  # a gap, and a stripe jump of two (another surface) below it
+    stripes[800:] = 2
+    relative = {}
+    for length in (1, 13):
+        ratios, usable, sample_stripes = fringe.level_samples(demod, valid, stripes, spec, 7, length)
+        half = length // 2
+        assert ratios.shape == (3, *usable.shape) == (3, np.arange(half, height - half, 7).size, 43)
+        levels = fringe.channel_levels(ratios, usable, spec)
+        relative[length] = (levels.gain / levels.gain[0]) / (gain / gain[0]) - 1
+    rows = np.arange(6, height - 6, 7)  # the averaged grid's rows; usable unless their 13 rows touch the gap or the jump
+    touches = ((rows + 6 >= 600) & (rows - 6 < 604)) | ((rows + 6 >= 800) & (rows - 6 < 800))
+    np.testing.assert_array_equal(usable, np.broadcast_to(~touches[:, None], usable.shape))
+    assert np.all(sample_stripes[rows >= 800] == 2)
+    assert relative[1][2] > 0.15  # measured +35 %
+    np.testing.assert_allclose(relative[13], 0, atol=0.04)  # measured -1 % and +2 %
 
 
 def test_crosstalk_is_what_a_squaring_projector_adds_to_each_phase_carrier(rng):
