@@ -100,7 +100,7 @@ class _Scanner(Scanner):
         d = demodulate_window(normalised, carriers, albedo=None)
         # back to image units, as demodulate_window does with its own estimate
         return Demodulated(amplitude=d.amplitude * gain[None], dc=d.dc * gain, residual=d.residual, misfit=d.misfit,
-                           noise=d.noise * gain), carriers
+                           noise=d.noise * gain, offset=d.offset), carriers
 
 
 def figures(result, truth, spec) -> tuple[float, float, float]:

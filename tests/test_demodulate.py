@@ -139,11 +139,12 @@ def test_window_kernel_equals_the_numpy_fit(small_rig, adaptive):
     windows = np.broadcast_to(carriers.line_windows(), (image.shape[0],))
     for window in np.unique(windows)[:3]:
         lines = np.flatnonzero(windows == window)[:40]
-        unexplained, var, dc, amp, misfit = fit_lines(image, carriers, lines, int(window), _short_window(carriers),
-                                                      adaptive=adaptive)
+        unexplained, var, dc, amp, misfit, offset = fit_lines(image, carriers, lines, int(window),
+                                                              _short_window(carriers), adaptive=adaptive)
         np.testing.assert_allclose(out.dc[lines], dc, rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(out.amplitude[:, lines], amp, rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(out.misfit[lines], misfit, rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(out.offset[lines], offset)
         np.testing.assert_allclose(out.residual[lines], unexplained / np.maximum(var, 1e-12), rtol=1e-4, atol=1e-6)
 
 

@@ -156,7 +156,7 @@ def fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.in
                *, adaptive: bool) -> tuple[NDArray, ...]:
     """Best window fit of some lines that share one window length.
 
-    Returns ``(unexplained, var, dc, amp (C, n, W), misfit)`` for ``img[lines]``.  The
+    Returns ``(unexplained, var, dc, amp (C, n, W), misfit, offset)`` for ``img[lines]``.  The
     centred window is kept unless a one-sided one leaves less than `PLACEMENT_GAIN` of its
     unexplained energy and the least of all.
     """
@@ -174,8 +174,9 @@ def fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.in
     placements = (0, -1, 1) if adaptive else (0,)
 
     def placed(placement: int) -> tuple[NDArray, ...]:  # the misfit's short window on the same side
-        return _fit_windows(cums, _window_bounds(w, window, placement)[0], _window_bounds(w, short, placement)[0],
-                            tables)
+        start = _window_bounds(w, window, placement)[0]
+        offset = np.broadcast_to(start + (window - 1) / 2 - x, raw.shape)  # the window's centre from the pixel
+        return (*_fit_windows(cums, start, _window_bounds(w, short, placement)[0], tables), offset)
 
     best = list(placed(placements[0]))
     centre_unexplained = best[0]
@@ -184,7 +185,7 @@ def fit_lines(img: NDArray[np.float32], carriers: Carriers, lines: NDArray[np.in
         better = (fit[0] < best[0]) & (fit[0] < PLACEMENT_GAIN * centre_unexplained)
         for i, value in enumerate(fit):
             best[i] = np.where(better[None] if value.ndim == 3 else better, value, best[i])
-    unexplained, var, mean, amp, prediction, observed = best
+    unexplained, var, mean, amp, prediction, observed, offset = best
     misfit = np.abs(observed - prediction) / np.maximum(mean, 1e-6)
     # back to image units at the pixel
-    return unexplained * flat**2, var * flat**2, mean * flat, amp * flat, misfit
+    return unexplained * flat**2, var * flat**2, mean * flat, amp * flat, misfit, offset

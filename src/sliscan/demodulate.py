@@ -103,6 +103,12 @@ class Demodulated:
         the window's DC: large where the light next to the pixel is of another level than its
         window's DC and ramp describe (a shadow or another surface within that short window).
         None for demodulators that do not compute it.
+    offset : (H, W) float32 array or None
+        Where the window a pixel's envelopes come from is centred, relative to the pixel, along
+        the carriers (camera pixels): 0 for a centred window, about half a window for one that
+        starts or ends at the pixel (next to an edge).  The envelopes describe the light around
+        that centre, not at the pixel (`sliscan.fringe.recentre`).  None for demodulators
+        that do not compute it.
     """
 
     amplitude: NDArray[np.float32]
@@ -110,6 +116,7 @@ class Demodulated:
     residual: NDArray[np.float32]
     misfit: NDArray[np.float32] | None = None
     noise: NDArray[np.float32] | None = None
+    offset: NDArray[np.float32] | None = None
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -370,7 +377,7 @@ def _phasors(omega: NDArray[np.float64], width: int, block: int = 64) -> NDArray
 @numba.njit(cache=True, nogil=True)
 def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int, adaptive: bool,
               unexplained: NDArray[np.float32], var: NDArray[np.float32], dc: NDArray[np.float32],
-              amp: NDArray[np.float32], misfit: NDArray[np.float32]) -> None:
+              amp: NDArray[np.float32], misfit: NDArray[np.float32], offset: NDArray[np.float32]) -> None:
     """Best least-squares window fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` at every
     pixel of one line; writes the outputs of `demodulate_window` for it (``(W,)`` each, `amp`
     ``(C, W)``), in image units.
@@ -500,17 +507,20 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
         f = flat[xi]
         unexplained[xi], var[xi], dc[xi] = fit_u[best] * f * f, fit_var[best] * f * f, fit_d[best] * f
         misfit[xi] = abs(observed - prediction[xi]) / max(fit_d[best], 1e-6)
+        offset[xi] = best + (window - 1) / 2 - xi
 
 
 @numba.njit(cache=True, nogil=True)
 def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: NDArray[np.intp], short: int,
                adaptive: bool, lines: NDArray[np.intp], unexplained: NDArray[np.float32], var: NDArray[np.float32],
-               dc: NDArray[np.float32], amp: NDArray[np.float32], misfit: NDArray[np.float32]) -> None:
+               dc: NDArray[np.float32], amp: NDArray[np.float32], misfit: NDArray[np.float32],
+               offset: NDArray[np.float32]) -> None:
     """`_fit_line` on the given `lines` of `img` ``(H, W)``, without the GIL (threads run
     disjoint sets of lines); `omegas` ``(H, C)`` radians per pixel, `windows` ``(H,)``;
     outputs ``(H, W)`` and `amp` ``(C, H, W)``."""
     for r in lines:
-        _fit_line(img[r], omegas[r], windows[r], short, adaptive, unexplained[r], var[r], dc[r], amp[:, r], misfit[r])
+        _fit_line(img[r], omegas[r], windows[r], short, adaptive, unexplained[r], var[r], dc[r], amp[:, r], misfit[r],
+                  offset[r])
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
@@ -561,10 +571,10 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     if windows.max() > w:
         raise InputError(f"capture is {w} px along the carriers, shorter than one carrier spacing ({windows.max()} px)")
     omegas = np.ascontiguousarray(2 * np.pi * carriers.line_frequencies(slice(0, h)), dtype=np.float64)
-    unexplained, var, dc, misfit = (np.empty((h, w), dtype=np.float32) for _ in range(4))
+    unexplained, var, dc, misfit, offset = (np.empty((h, w), dtype=np.float32) for _ in range(5))
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
-    over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit),
-              h, workers)
+    over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit,
+                                       offset), h, workers)
     if gain is not None:  # back to image units; every ratio (what the decoder uses) is unchanged
         amp *= gain[None]
         dc *= gain
@@ -573,7 +583,8 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
     dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
     noise = np.sqrt(2 * unexplained / dof[:, None])
-    return Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise)
+    return Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise,
+                       offset=offset)
 
 
 #: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`;
@@ -995,5 +1006,6 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
         def back(a: NDArray | None) -> NDArray | None:
             return None if a is None else np.ascontiguousarray(np.swapaxes(a, -1, -2))
 
-        out = Demodulated(back(out.amplitude), back(out.dc), back(out.residual), back(out.misfit), back(out.noise))
+        out = Demodulated(back(out.amplitude), back(out.dc), back(out.residual), back(out.misfit), back(out.noise),
+                          back(out.offset))
     return out, found
