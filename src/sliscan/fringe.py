@@ -477,14 +477,16 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
                 continue
             end = _run_end(coarse[r], start, max_jump)
             for x in range(start, end):  # the phase's slope (radians per pixel) on either side, if they agree
-                a, b = max(x - reach, start), min(x + reach, end - 1)
                 slope[x] = 0.0
+                if summed[2, r, x] <= 0 or abs(summed[3, r, x] / summed[2, r, x] - x) < 0.5:
+                    continue  # describes its own pixel: nothing to move
+                a, b = max(x - reach, start), min(x + reach, end - 1)
                 left, right = _slope(summed, r, a, x, 0.25 * reach), _slope(summed, r, x, b, 0.25 * reach)
                 if np.isfinite(left) and np.isfinite(right) and abs(left - right) <= 0.3 * max(abs(left), abs(right)):
                     if abs(left + right) >= 2 * min_slope:
                         slope[x] = 0.5 * (left + right)
             for x in range(start, end):
-                if summed[2, r, x] > 0 and slope[x] != 0.0:
+                if slope[x] != 0.0:
                     turn = -slope[x] * (summed[3, r, x] / summed[2, r, x] - x)
                     c, s = np.cos(turn), np.sin(turn)
                     re, im = summed[0, r, x], summed[1, r, x]
