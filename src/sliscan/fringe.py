@@ -236,14 +236,13 @@ def level_samples(demod: Demodulated, valid: NDArray[np.bool_], stripes: NDArray
         The grid pixels' own stripes.
     """
     n, half = len(spec.phase_carriers), max(length // 2, 0)
-    frame = lambda image: along_carriers(image, spec)  # noqa: E731
-    height, width = frame(valid).shape
+    height, width = along_carriers(valid, spec).shape
     rows = np.arange(half, height - half, step)
     columns = np.arange(0, width, step)
     around = rows[None, :, None] + np.arange(-half, half + 1)[:, None, None]  # (L, h, 1)
 
     def gather(image: NDArray) -> NDArray:
-        return frame(image)[around, columns[None, None, :]]  # (L, h, w)
+        return along_carriers(image, spec)[around, columns[None, None, :]]  # (L, h, w)
 
     stripe = gather(stripes).astype(np.int32)
     usable = np.all(gather(valid), axis=0) & (stripe.max(axis=0) - stripe.min(axis=0) <= 1)
