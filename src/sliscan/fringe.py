@@ -648,7 +648,8 @@ EXTEND_SNR = 4.0
 
 def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: PatternSpec, *,
            max_disagreement: float = 0.5, min_modulation: float = 0.5, smooth: bool = True,
-           rescue: bool = True, extend: bool = True, unmix: bool = True) -> Decoded:
+           rescue: bool = True, extend: bool = True, unmix: bool = True, average_levels: bool = True,
+           recentre_phase: bool = True) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -686,6 +687,12 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     unmix : bool
         Fit and take out the projector's carrier products on the phase carriers (`crosstalk`);
         if false, each phase carrier is taken for its fringe alone (for the benchmark's record).
+    average_levels : bool
+        Fit the levels to envelopes averaged along the phase direction (`level_samples`); if
+        false, to single pixels (for the benchmark's record).
+    recentre_phase : bool
+        Move each summed phasor back to its pixel (`recentre`); if false, leave it where its
+        windows and box describe the fringe (for the benchmark's record).
 
     Returns
     -------
@@ -703,11 +710,12 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     along_phase, radius_phase = max(1, int(round(fringe_cam / 8))) | 1, max(1, int(round(fringe_cam / 4)))
     min_slope = RECENTRE_MIN_CHANGE / carriers.window * 2 * np.pi / spec.fringe_period  # radians per camera pixel
     sample, usable, sample_stripes = level_samples(demod, decoded.valid, decoded.stripe, spec,
-                                                   sample_step(decoded.valid, LEVEL_SAMPLES), along_phase)
+                                                   sample_step(decoded.valid, LEVEL_SAMPLES),
+                                                   along_phase if average_levels else 1)
     levels = channel_levels(sample, usable, spec, stripes=sample_stripes if unmix else None)
     phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe)
     phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor
-    offset = None if demod.offset is None else frame(demod.offset)
+    offset = None if demod.offset is None or not recentre_phase else frame(demod.offset)
     phasor = with_positions(phasor, offset)
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
     summed = (smooth_phasors(phasor, coarse, along_carriers=carriers.window, along_phase=along_phase, max_jump=max_jump)
