@@ -106,9 +106,9 @@ class Demodulated:
     offset : (H, W) float32 array or None
         Where the window a pixel's envelopes come from is centred, relative to the pixel, along
         the carriers (camera pixels): 0 for a centred window, about half a window for one that
-        starts or ends at the pixel (next to an edge).  The envelopes describe the light around
-        that centre, not at the pixel (`sliscan.fringe.recentre`).  None for demodulators
-        that do not compute it.
+        starts or ends at the pixel (next to an edge, or where the code changes within a centred
+        window).  The envelopes describe the light around that centre, not at the pixel
+        (`sliscan.fringe.recentre`).  None for demodulators that do not compute it.
     """
 
     amplitude: NDArray[np.float32]
