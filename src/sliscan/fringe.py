@@ -720,7 +720,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
     summed = (smooth_phasors(phasor, coarse, along_carriers=carriers.window, along_phase=along_phase, max_jump=max_jump)
               if smooth else phasor.copy())
-    if len(summed) > 3:
+    if offset is not None:
         recentre(summed, coarse, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope)
     shape = coarse.shape
     line, strong, sure = np.empty(shape, np.float32), np.empty(shape, bool), np.empty(shape, bool)
@@ -750,7 +750,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         around = np.where(kept, out, np.where(joins, mean, np.float32(np.nan))).astype(np.float32)
         summed = (smooth_phasors(phasor, around, along_carriers=carriers.window, along_phase=along_phase,
                                  max_jump=max_jump) if smooth else phasor.copy())
-        if len(summed) > 3:
+        if offset is not None:
             recentre(summed, around, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope)
         over_rows(lambda rows: _unwrap_rows(summed, around, period, min_modulation, 0.0, rows, line, strong, sure),
                   shape[0])
