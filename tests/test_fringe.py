@@ -157,6 +157,43 @@ def test_recentre_moves_the_phase_from_where_the_window_looked_back_to_the_pixel
     np.testing.assert_allclose(after[160:200], before[160:200], atol=1e-4)
 
 
+def test_window_contrast_is_the_pixels_dc_over_its_windows_mean():
+    # a bright surface (DC 1) up to x = 149, a dark one (0.2) from 150; the first 30 dark
+    # pixels' windows (61 px) end at them, reaching back across the edge (offset -30)
+    width, window = 300, 61
+    x = np.arange(width)
+    dc = np.where(x < 150, 1.0, 0.2).astype(np.float32)[None]
+    offset = np.where((x >= 150) & (x < 180), -30.0, 0.0).astype(np.float32)[None]
+    contrast = fringe.window_contrast(dc, offset, np.array([window]))[0]
+    bright = np.clip(150 - (x - 60), 0, window)  # pixels of the left-reaching windows on the bright side
+    expected = 0.2 / ((bright + (window - bright) * 0.2) / window)
+    np.testing.assert_allclose(contrast[150:180], expected[150:180], rtol=1e-5)  # 0.203 .. 0.330
+    assert contrast[150] == pytest.approx(0.2 / (60.2 / 61), rel=1e-5)
+    # centred windows on one surface, and windows clipped at the image's ends: exactly 1
+    np.testing.assert_allclose(contrast[np.r_[0:120, 180:300]], 1.0, rtol=1e-6)
+    # the last bright pixels' centred windows take in some of the dark side
+    assert contrast[149] == pytest.approx(1.0 / ((31 + 30 * 0.2) / 61), rel=1e-5)
+    assert np.all(np.diff(contrast[119:150]) > 0)
+
+
+def test_refine_drops_exactly_the_pixels_whose_window_lies_on_another_surface(rig):
+    spec = patterns.phase_spec((512, 384))
+    conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=2), ambient=0.1,
+                                     projector_gamma=2.2, seed=2)
+    capture = simulate.render(rig, simulate.steps_scene(), patterns.render_pattern(spec), conditions)
+    stages = Scanner(spec, rig.calibration).scan_stages(capture.image)[1]
+    demod, carriers = stages.demodulated, stages.carriers
+    gray = decode(demod, spec)
+    kept, every = (fringe.refine(gray, demod, carriers, spec, max_window_contrast=k)
+                   for k in (fringe.MAX_WINDOW_CONTRAST, np.inf))
+    contrast = fringe.window_contrast(demod.dc, demod.offset, carriers.line_windows())
+    across = (contrast > fringe.MAX_WINDOW_CONTRAST) | (contrast < 1 / fringe.MAX_WINDOW_CONTRAST)
+    assert np.array_equal(kept.valid, every.valid & ~across)
+    assert np.array_equal(kept.proj_map[kept.valid], every.proj_map[kept.valid])
+    assert np.all(kept.stripe[every.valid & across] == -1)
+    assert 0 < np.sum(every.valid & across) < 0.05 * every.valid.sum()
+
+
 def test_crosstalk_is_what_a_squaring_projector_adds_to_each_phase_carrier(rng):
     # light = drive ** 2 has no terms beyond the second order: a + b sum(s_k cos) squared puts
     # 2 a b s_n on carrier n and b^2 s_j s_k on the sums and differences of j and k

@@ -629,12 +629,57 @@ def neighbour_lines(line: NDArray[np.float32], *, radius_carriers: int,
     return (sums[0] / ((2 * radius_carriers + 1) * (2 * radius_phase + 1))).astype(np.float32), mean, spread
 
 
+@numba.njit(cache=True, nogil=True)
+def _window_contrast_rows(dc: NDArray[np.float32], offset: NDArray[np.float32], windows: NDArray[np.intp],
+                          rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`window_contrast` on the given `rows`, into `out`."""
+    width = dc.shape[1]
+    running = np.zeros(width + 1)
+    for r in rows:
+        window = min(windows[r], width)
+        for x in range(width):
+            running[x + 1] = running[x] + dc[r, x]
+        for x in range(width):
+            start = int(np.floor(x + offset[r, x] - (window - 1) / 2 + 0.5))
+            start = min(max(start, 0), width - window)
+            mean = (running[start + window] - running[start]) / window
+            out[r, x] = dc[r, x] / mean if mean > 0 else np.inf
+
+
+def window_contrast(dc: NDArray[np.float32], offset: NDArray[np.float32],
+                    windows: NDArray[np.intp]) -> NDArray[np.float32]:
+    """Each pixel's DC over the mean DC of the pixels its demodulation window covers, ``(H, W)``
+    float32 (carriers along axis 1; `Demodulated.dc`, `Demodulated.offset`, and each line's
+    window length `Carriers.line_windows`, broadcast to ``(H,)``).
+
+    About 1 where the window lies on the pixel's own surface under the same light, whatever
+    the window's placement.  Far from 1 where a window that ends at the pixel reaches across
+    into a surface several times brighter or darker: next to a depth edge the demodulator
+    takes the window that fits best, and where the pixel's own side is dark (a sphere's limb
+    under grazing light beside a bright wall) that is the window on the other surface; its
+    envelopes, Gray code and fringe are that surface's, which `refine` cannot tell from the
+    pixel's own when the depth edge's jump is close to a whole fringe period (`MAX_WINDOW_CONTRAST`).
+    """
+    out = np.empty(dc.shape, np.float32)
+    windows = np.ascontiguousarray(np.broadcast_to(windows, dc.shape[:1]), dtype=np.intp)
+    over_rows(lambda rows: _window_contrast_rows(dc, offset, windows, rows, out), dc.shape[0])
+    return out
+
+
 #: Smallest change of the fringe along the carriers that `recentre` acts on, in projector
 #: lines per demodulation window (a slope of 0.1 lines per camera pixel at 1296x972, 0.05 at
 #: 5 MP).  On the virtual rig's flat steps, whose true slope is 0, error patches read as up to
 #: 10-15 lines per window at 1296x972; toward the sphere's left and right limbs the fringe
 #: changes by 4-30 lines per window.
 RECENTRE_MIN_CHANGE = 4.0
+
+#: `refine` drops the pixels whose `window_contrast` exceeds this or is below its inverse.
+#: Measured on the virtual rig's sphere and steps (5 MP seed 0 and 1296x972 seed 1, smooth and
+#: checkered albedo; README, "Sub-stripe depth from one frame"): at 3 it catches 25-49 % of the
+#: whole-period slips on the 5 MP spheres and 16-37 % on the checkered 1296x972 ones, for 0.03-0.4 %
+#: of the correct pixels (a checker edge of contrast 3.6 inside a window is the most it takes);
+#: at 2.5 the checkered sphere loses 2 % of its correct pixels, at 2 the smooth one 2.6 %.
+MAX_WINDOW_CONTRAST = 3.0
 
 #: `extend` defaults: a pixel the decoding left out joins when at least this share of its box
 #: is decoded, their lines spread by at most this many stripes (one surface), and its own
@@ -649,7 +694,7 @@ EXTEND_SNR = 4.0
 def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: PatternSpec, *,
            max_disagreement: float = 0.5, min_modulation: float = 0.5, smooth: bool = True,
            rescue: bool = True, extend: bool = True, unmix: bool = True, average_levels: bool = True,
-           recentre_phase: bool = True) -> Decoded:
+           recentre_phase: bool = True, max_window_contrast: float = MAX_WINDOW_CONTRAST) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -693,6 +738,10 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     recentre_phase : bool
         Move each summed phasor back to its pixel (`recentre`); if false, leave it where its
         windows and box describe the fringe (for the benchmark's record).
+    max_window_contrast : float
+        Drop the pixels whose DC differs from their window's mean DC by more than this factor
+        (`window_contrast`: the window describes another surface); ``inf`` keeps them (for the
+        benchmark's record).  Needs the window demodulator's offsets (skipped without them).
 
     Returns
     -------
@@ -758,5 +807,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         over_rows(lambda rows: _rescue_rows(summed, previous, strong & joins, kept,
                                             np.where(joins, mean, np.float32(np.nan)),
                                             period, True, spec.stripes, spec.phase_lines, rows, out, stripe), shape[0])
+    if demod.offset is not None and np.isfinite(max_window_contrast):
+        contrast = window_contrast(frame(demod.dc), frame(demod.offset), carriers.line_windows())
+        across = (contrast > max_window_contrast) | (contrast < 1 / max_window_contrast)
+        out[across], stripe[across] = np.nan, -1
     out, stripe = frame(out), frame(stripe)
     return replace(decoded, proj_map=out, stripe=stripe, valid=np.isfinite(out))
