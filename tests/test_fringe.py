@@ -194,6 +194,31 @@ def test_refine_drops_exactly_the_pixels_whose_window_lies_on_another_surface(ri
     assert 0 < np.sum(every.valid & across) < 0.05 * every.valid.sum()
 
 
+def test_unweighted_phasors_sum_to_the_phase_at_the_middle_of_their_box():
+    # a fringe rising 0.02 rad per row along the phase direction on an albedo that rises by
+    # 1 % per row (log 0.01): a box of 41 rows weighted by the DC describes the DC-weighted
+    # centroid, 0.01 * (41^2 - 1) / 12 = 1.4 rows below its middle (0.028 rad); unweighted, the middle
+    spec = patterns.phase_spec((1024, 768))
+    n, height, width, box = len(spec.phase_carriers), 300, 16, 41
+    rows = np.arange(height, dtype=np.float64)[:, None] * np.ones(width)
+    phase, dc = 0.02 * rows, 0.2 * np.exp(0.01 * rows)
+    fringes = [(1 + np.cos(phase - shift)) / 2 for shift in phase_shifts(spec)]
+    amplitude = np.zeros((spec.bits + n, height, width), np.float32)
+    amplitude[spec.bits:] = np.stack([0.3 * f * dc for f in fringes])  # gain 0.3, no offset
+    demod = SimpleNamespace(amplitude=amplitude, dc=dc.astype(np.float32))
+    levels = fringe.ChannelLevels(gain=np.full(n, 0.3), offset=np.zeros(n), crosstalk=np.zeros(n))
+    valid, stripes = np.ones((height, width), bool), np.full((height, width), -1, np.int16)
+    coarse = np.zeros((height, width), np.float32)
+    bias = {}
+    for weighted in (False, True):
+        phasor = fringe.phasors(demod, valid, levels, spec, stripes, weighted=weighted)
+        summed = fringe.smooth_phasors(phasor, coarse, along_carriers=1, along_phase=box, max_jump=1.0)
+        middle = slice(box, height - box)
+        bias[weighted] = np.angle(np.exp(1j * (np.arctan2(summed[1], summed[0]) - phase)))[middle].mean()
+    assert abs(bias[False]) < 1e-4
+    assert bias[True] == pytest.approx(0.02 * 0.01 * (box**2 - 1) / 12, rel=0.05)
+
+
 def test_crosstalk_is_what_a_squaring_projector_adds_to_each_phase_carrier(rng):
     # light = drive ** 2 has no terms beyond the second order: a + b sum(s_k cos) squared puts
     # 2 a b s_n on carrier n and b^2 s_j s_k on the sums and differences of j and k
