@@ -219,6 +219,32 @@ def test_unweighted_phasors_sum_to_the_phase_at_the_middle_of_their_box():
     assert bias[True] == pytest.approx(0.02 * 0.01 * (box**2 - 1) / 12, rel=0.05)
 
 
+def test_boxes_along_the_phase_reach_across_a_stripe_borders_undecoded_rows():
+    # a fringe rising 0.02 rad per row; rows 100-101 undecoded (a Gray code border): boxes of
+    # 41 rows that stop there describe the fringe up to 10 rows away (0.2 rad); bridged, a
+    # box loses only the two gap rows: at most 2 x 20 / 39 rows off centre (0.0205 rad)
+    height, width, box = 240, 4, 41
+    phase = 0.02 * np.arange(height, dtype=np.float64)[:, None] * np.ones(width)
+    decoded = np.ones((height, width), bool)
+    decoded[100:102] = False
+    phasor = np.stack([np.cos(phase), np.sin(phase), np.ones_like(phase)]) * decoded
+    coarse = np.where(decoded, 50.0, np.nan).astype(np.float32)
+    near = np.r_[80:100, 102:122]
+    errors = {}
+    for bridge in (False, True):
+        summed = fringe.smooth_phasors(phasor.astype(np.float32), coarse, along_carriers=1, along_phase=box,
+                                       max_jump=5.0, bridge=bridge)
+        errors[bridge] = np.abs(np.angle(np.exp(1j * (np.arctan2(summed[1], summed[0]) - phase))))[near]
+    assert errors[False].max() > 0.15
+    assert errors[True].max() < 0.021
+    assert errors[True][19:21].max() < 0.002  # the rows next to the gap: 0.08 rows
+    # a gap between two surfaces (a jump beyond max_jump) stays a break
+    coarse[102:] = 60.0
+    summed = fringe.smooth_phasors(phasor.astype(np.float32), coarse, along_carriers=1, along_phase=box,
+                                   max_jump=5.0)
+    assert np.abs(np.angle(np.exp(1j * (np.arctan2(summed[1], summed[0]) - phase))))[99].max() > 0.15
+
+
 def test_crosstalk_is_what_a_squaring_projector_adds_to_each_phase_carrier(rng):
     # light = drive ** 2 has no terms beyond the second order: a + b sum(s_k cos) squared puts
     # 2 a b s_n on carrier n and b^2 s_j s_k on the sums and differences of j and k
