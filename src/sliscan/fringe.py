@@ -30,7 +30,9 @@ Stages, each its own function:
    into its neighbours with a beat of exactly the carrier spacing, which a box of one spacing
    period cancels; it is "twiced" (``2 B - B B``), which also cancels the box's bias on a
    curved surface.  Along the phase direction it is an eighth of a fringe period (the
-   modulation keeps 97 % of its depth) and averages the noise.  Each summed phasor then has
+   modulation keeps 97 % of its depth) and averages the noise; for the phase of the pixels
+   the decisions below keep, runs along the phase direction go on across the rows the Gray
+   code left undecided at stripe borders (`bridge_gaps`).  Each summed phasor then has
    its phase moved from the position its windows and box describe back to its pixel, where
    the fringe's slope along the carriers is measured (`recentre`).
 4. `unwrap`: the fringe period nearest to the Gray code stripe's centre; pixels where the two
@@ -40,6 +42,8 @@ Stages, each its own function:
 5. Pixels the Gray code left out are unwrapped against the mean line of the kept pixels
    around them (`neighbour_lines`), if those lie on one surface and the pixel's own phase
    carriers stand above the noise (`refine`'s `extend`).
+6. Pixels whose demodulation window lies on a surface several times brighter or darker than
+   themselves are dropped (`window_contrast`): their envelopes describe that surface.
 
 Measured on the virtual rig: README, "Sub-stripe depth from one frame".
 """
@@ -474,7 +478,7 @@ def bridge_gaps(coarse: NDArray[np.float32], gap: int, max_jump: float) -> NDArr
 def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, along_carriers: int,
                    along_phase: int, max_jump: float, bridge: bool = False) -> NDArray[np.float32]:
     """Box sums of the phasors (in the carriers-along-axis-1 frame) within runs of one surface:
-    `smooth_along_carriers`, then `smooth_along_phase`.
+    twiced along the carriers, then `smooth_along_phase`.
 
     Parameters
     ----------
@@ -488,14 +492,8 @@ def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, 
     bridge : bool
         Along axis 0, runs go on across gaps of up to half a box (`bridge_gaps`).
     """
-    rows = smooth_along_carriers(phasor, coarse, along_carriers, max_jump)
+    rows = _twiced_box(phasor, coarse, along_carriers, max_jump)
     return smooth_along_phase(rows, coarse, along_phase, max_jump, bridge=bridge)
-
-
-def smooth_along_carriers(phasor: NDArray[np.float32], coarse: NDArray[np.float32], length: int,
-                          max_jump: float) -> NDArray[np.float32]:
-    """The twiced box sums of `smooth_phasors` along axis 2 (the carriers), ``(K, H, W)``."""
-    return _twiced_box(phasor, coarse, length, max_jump)
 
 
 def smooth_along_phase(rows: NDArray[np.float32], coarse: NDArray[np.float32], length: int, max_jump: float, *,
@@ -534,8 +532,8 @@ def _slope(summed: NDArray[np.float32], r: int, a: int, b: int, min_span: float)
 
 @numba.njit(cache=True, nogil=True)
 def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max_jump: float, reach: int,
-                   min_slope: float, rows: NDArray[np.intp]) -> None:
-    """`recentre` on the given `rows`, in place."""
+                   min_slope: float, also: NDArray[np.float32], turn_also: bool, rows: NDArray[np.intp]) -> None:
+    """`recentre` on the given `rows`, in place (and `also` if `turn_also`)."""
     width = coarse.shape[1]
     slope = np.zeros(width)
     for r in rows:
@@ -560,11 +558,14 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
                     c, s = np.cos(turn), np.sin(turn)
                     re, im = summed[0, r, x], summed[1, r, x]
                     summed[0, r, x], summed[1, r, x] = re * c - im * s, re * s + im * c
+                    if turn_also:
+                        re, im = also[0, r, x], also[1, r, x]
+                        also[0, r, x], also[1, r, x] = re * c - im * s, re * s + im * c
             start = end
 
 
 def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_jump: float, reach: int,
-             min_slope: float) -> None:
+             min_slope: float, also: NDArray[np.float32] | None = None) -> None:
     """Move each summed phasor's phase from the position it describes back to its pixel, in place.
 
     A pixel's envelopes come from the window the demodulator chose for it, which starts or
@@ -593,8 +594,13 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
         Box-summed phasors with their positions (`with_positions`), carriers along axis 2.
     coarse : (H, W) float32 array
         The line the runs were cut by in `smooth_phasors` (NaN outside every run).
+    also : (2, H, W) float32 array, optional
+        Other sums of the same phasors (real, imaginary), turned by the same angle per pixel.
     """
-    over_rows(lambda rows: _recentre_rows(summed, coarse, max_jump, reach, min_slope, rows), summed.shape[1])
+    turn_also = also is not None
+    also = also if turn_also else np.zeros((2, 1, 1), np.float32)
+    over_rows(lambda rows: _recentre_rows(summed, coarse, max_jump, reach, min_slope, also, turn_also, rows),
+              summed.shape[1])
 
 
 @numba.njit(cache=True, inline="always")
@@ -626,11 +632,14 @@ def _unwrap_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], perio
 
 @numba.njit(cache=True, nogil=True)
 def _rescue_rows(summed: NDArray[np.float32], line: NDArray[np.float32], strong: NDArray[np.bool_],
-                 sure: NDArray[np.bool_], reference: NDArray[np.float32], period: float, rescue: bool, stripes: int,
-                 lines: int, rows: NDArray[np.intp], out: NDArray[np.float32], stripe: NDArray[np.int16]) -> None:
+                 sure: NDArray[np.bool_], reference: NDArray[np.float32], period: float, rescue: bool,
+                 fine: NDArray[np.float32], use_fine: bool, stripes: int, lines: int, rows: NDArray[np.intp],
+                 out: NDArray[np.float32], stripe: NDArray[np.int16]) -> None:
     """Per pixel of `rows`: the sure line, or a strong pixel's phase unwrapped against
-    `reference` if it lands within a quarter period of it (and `rescue`), else NaN; `stripe`:
-    the line's stripe (`patterns.stripe_of_line`), -1 for NaN or beyond the projector."""
+    `reference` if it lands within a quarter period of it (and `rescue`), else NaN; if
+    `use_fine`, a kept line is then replaced by the phase of `fine` ``(2, H, W)`` (real,
+    imaginary) in the fringe period nearest to it; `stripe`: the line's stripe
+    (`patterns.stripe_of_line`), -1 for NaN or beyond the projector."""
     for r in rows:
         for x in range(line.shape[1]):
             value = np.float32(np.nan)
@@ -640,6 +649,8 @@ def _rescue_rows(summed: NDArray[np.float32], line: NDArray[np.float32], strong:
                 repaired = _unwrapped(np.arctan2(summed[1, r, x], summed[0, r, x]), reference[r, x], period)
                 if abs(repaired - reference[r, x]) <= period / 4:
                     value = repaired
+            if use_fine and np.isfinite(value):
+                value = _unwrapped(np.arctan2(fine[1, r, x], fine[0, r, x]), value, period)
             out[r, x] = value
             nearest = np.floor(value + 0.5)
             stripe[r, x] = int(np.floor((nearest + 0.5) * stripes / lines)) if 0 <= nearest < lines else -1
@@ -847,23 +858,19 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     offset = None if demod.offset is None or not recentre_phase else frame(demod.offset)
     phasor = with_positions(phasor, offset)
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
-    def recentred(sums: NDArray[np.float32]) -> None:
-        if offset is not None:
-            recentre(sums, coarse, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope)
-
-    fine = None  # the phase of the boxes across gaps (`bridge_gaps`), for the pixels the decisions keep
+    fine = np.zeros((2, 1, 1), np.float32)  # boxes across gaps (`bridge_gaps`): the kept pixels' phase
     if smooth:
-        rows = smooth_along_carriers(phasor, coarse, carriers.window, max_jump)
+        rows = _twiced_box(phasor, coarse, carriers.window, max_jump)
         if bridge:
-            bridged = smooth_along_phase(rows, coarse, along_phase, max_jump, bridge=True)
-            recentred(bridged)
-            fine = np.arctan2(bridged[1], bridged[0])
-            del bridged  # full frames: one at a time
+            fine = smooth_along_phase(rows[:2], coarse, along_phase, max_jump, bridge=True)
         summed = smooth_along_phase(rows, coarse, along_phase, max_jump)
         del rows
     else:
         summed = phasor.copy()
-    recentred(summed)
+    use_fine = fine.shape[1:] == coarse.shape
+    if offset is not None:
+        recentre(summed, coarse, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope,
+                 also=fine if use_fine else None)
     shape = coarse.shape
     line, strong, sure = np.empty(shape, np.float32), np.empty(shape, bool), np.empty(shape, bool)
     period = float(spec.fringe_period)
@@ -872,13 +879,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     reference = local_reference(line, sure, coarse, radius_carriers=carriers.window, radius_phase=radius_phase,
                                 max_jump=max_jump)
     out, stripe = np.empty(shape, np.float32), np.empty(shape, np.int16)
-    over_rows(lambda rows: _rescue_rows(summed, line, strong, sure, reference, period, rescue, spec.stripes,
-                                        spec.phase_lines, rows, out, stripe), shape[0])
-    if fine is not None:
-        kept = np.isfinite(out)
-        out[kept] = unwrap(fine[kept], out[kept], spec)
-        stripe[kept] = stripe_of_line(out[kept], spec)
-        del fine, kept
+    over_rows(lambda rows: _rescue_rows(summed, line, strong, sure, reference, period, rescue, fine, use_fine,
+                                        spec.stripes, spec.phase_lines, rows, out, stripe), shape[0])
+    del fine
     if extend and demod.noise is not None:
         del reference, summed, coarse  # the first pass's, no longer needed: memory for the second
         kept = np.isfinite(out)
@@ -901,10 +904,11 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
             recentre(summed, around, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope)
         over_rows(lambda rows: _unwrap_rows(summed, around, period, min_modulation, 0.0, rows, line, strong, sure),
                   shape[0])
-        previous = out.copy()
-        over_rows(lambda rows: _rescue_rows(summed, previous, strong & joins, kept,
-                                            np.where(joins, mean, np.float32(np.nan)),
-                                            period, True, spec.stripes, spec.phase_lines, rows, out, stripe), shape[0])
+        previous, candidates = out.copy(), strong & joins
+        reference = np.where(joins, mean, np.float32(np.nan))
+        over_rows(lambda rows: _rescue_rows(summed, previous, candidates, kept, reference, period, True,
+                                            np.zeros((2, 1, 1), np.float32), False, spec.stripes, spec.phase_lines,
+                                            rows, out, stripe), shape[0])
     if demod.offset is not None and np.isfinite(max_window_contrast):
         contrast = window_contrast(frame(demod.dc), frame(demod.offset), carriers.line_windows())
         across = (contrast > max_window_contrast) | (contrast < 1 / max_window_contrast)
