@@ -92,6 +92,8 @@ DECODER_VARIANTS = {
                                                         dict(fringe_options=dict(max_window_contrast=float("inf")))),
     "sliscan 4-bit + phase (DC-weighted phasors)": ("sliscan 4-bit + phase", dict(fringe_options=dict(dc_weights=True))),
     "sliscan 4-bit + phase (boxes stop at gaps)": ("sliscan 4-bit + phase", dict(fringe_options=dict(bridge=False))),
+    "sliscan 4-bit + phase (no recentring along the phase)": ("sliscan 4-bit + phase",
+                                                              dict(fringe_options=dict(recentre_rows=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
     "thesis 4-bit (decided by order)": ("thesis 4-bit", dict(decode_options=dict(order=True))),

@@ -245,6 +245,27 @@ def test_boxes_along_the_phase_reach_across_a_stripe_borders_undecoded_rows():
     assert np.abs(np.angle(np.exp(1j * (np.arctan2(summed[1], summed[0]) - phase))))[99].max() > 0.15
 
 
+def test_recentring_along_the_phase_moves_a_clipped_boxs_phase_back_to_its_row():
+    # a fringe rising 0.02 rad per row (the projection's own slope) down a run that ends at
+    # row 119 (an edge); boxes of 41 rows clipped there describe the fringe up to 10 rows
+    # above their pixel (0.2 rad); with their rows carried along, they are moved back
+    height, width, box = 240, 3, 41
+    rows = np.arange(height, dtype=np.float64)[:, None] * np.ones(width)
+    phase = 0.02 * rows
+    inside = rows < 120
+    coarse = np.where(inside, 50.0, np.nan).astype(np.float32)
+    values = (np.stack([np.cos(phase), np.sin(phase), np.ones_like(phase), rows]) * inside).astype(np.float32)
+    sums = fringe._segment_box(values, coarse, box // 2, 5.0, axis=1)
+    error = lambda: np.abs(np.angle(np.exp(1j * (np.arctan2(sums[1], sums[0]) - phase))))  # noqa: E731
+    before = error()
+    middle = sums.copy()
+    fringe.recentre_along_phase(sums, coarse, max_jump=5.0, reach=box)
+    after = error()
+    assert before[100:120].max() > 0.15 and before[:20].max() > 0.15  # both ends of the run
+    assert after[inside].max() < 1e-3
+    np.testing.assert_array_equal(sums[:, 20:100], middle[:, 20:100])  # whole boxes: untouched
+
+
 def test_crosstalk_is_what_a_squaring_projector_adds_to_each_phase_carrier(rng):
     # light = drive ** 2 has no terms beyond the second order: a + b sum(s_k cos) squared puts
     # 2 a b s_n on carrier n and b^2 s_j s_k on the sums and differences of j and k

@@ -375,6 +375,31 @@ def _segment_box(values: NDArray[np.float32], coarse: NDArray[np.float32], radiu
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _column_runs(coarse: NDArray[np.float32], max_jump: float, c0: int, n: int, start: NDArray[np.intp],
+                 end: NDArray[np.intp]) -> None:
+    """For columns ``c0 .. c0 + n - 1`` (index j): `start` ``[y, j]`` the first row of pixel
+    ``(y, c0 + j)``'s run down its column (-1: in no run), `end` one past its last row."""
+    height = coarse.shape[0]
+    for y in range(height):
+        for j in range(n):
+            here = coarse[y, c0 + j]
+            if not np.isfinite(here):
+                start[y, j] = -1
+            elif y > 0 and start[y - 1, j] >= 0 and abs(here - coarse[y - 1, c0 + j]) <= max_jump:
+                start[y, j] = start[y - 1, j]
+            else:
+                start[y, j] = y
+    for y in range(height - 1, -1, -1):
+        for j in range(n):
+            if start[y, j] < 0:
+                end[y, j] = -1
+            elif y < height - 1 and start[y + 1, j] == start[y, j]:
+                end[y, j] = end[y + 1, j]
+            else:
+                end[y, j] = y + 1
+
+
 @numba.njit(cache=True, nogil=True)
 def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int, max_jump: float,
                          columns: NDArray[np.intp], out: NDArray[np.float32], block: int = 64) -> None:
@@ -387,25 +412,8 @@ def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32
     start, end = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
     total = np.empty((height, block))
     for c0 in range(columns[0], columns[-1] + 1, block):
-        c1 = min(c0 + block, columns[-1] + 1)
-        n = c1 - c0
-        for y in range(height):  # first row of each pixel's run (-1: in no run)
-            for j in range(n):
-                here = coarse[y, c0 + j]
-                if not np.isfinite(here):
-                    start[y, j] = -1
-                elif y > 0 and start[y - 1, j] >= 0 and abs(here - coarse[y - 1, c0 + j]) <= max_jump:
-                    start[y, j] = start[y - 1, j]
-                else:
-                    start[y, j] = y
-        for y in range(height - 1, -1, -1):  # one past its last row
-            for j in range(n):
-                if start[y, j] < 0:
-                    end[y, j] = -1
-                elif y < height - 1 and start[y + 1, j] == start[y, j]:
-                    end[y, j] = end[y + 1, j]
-                else:
-                    end[y, j] = y + 1
+        n = min(c0 + block, columns[-1] + 1) - c0
+        _column_runs(coarse, max_jump, c0, n, start, end)
         for k in range(k_count):
             for y in range(height):
                 for j in range(n):
@@ -477,8 +485,7 @@ def bridge_gaps(coarse: NDArray[np.float32], gap: int, max_jump: float) -> NDArr
 
 def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, along_carriers: int,
                    along_phase: int, max_jump: float, bridge: bool = False) -> NDArray[np.float32]:
-    """Box sums of the phasors (in the carriers-along-axis-1 frame) within runs of one surface:
-    twiced along the carriers, then `smooth_along_phase`.
+    """Box sums of the phasors (in the carriers-along-axis-1 frame) within runs of one surface.
 
     Parameters
     ----------
@@ -493,15 +500,8 @@ def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, 
         Along axis 0, runs go on across gaps of up to half a box (`bridge_gaps`).
     """
     rows = _twiced_box(phasor, coarse, along_carriers, max_jump)
-    return smooth_along_phase(rows, coarse, along_phase, max_jump, bridge=bridge)
-
-
-def smooth_along_phase(rows: NDArray[np.float32], coarse: NDArray[np.float32], length: int, max_jump: float, *,
-                       bridge: bool = False) -> NDArray[np.float32]:
-    """The box sums of `smooth_phasors` along axis 1 (the phase direction), ``(K, H, W)``: boxes
-    of `length` within runs of `coarse`, across its short gaps if `bridge` (`bridge_gaps`)."""
-    runs = bridge_gaps(coarse, length // 2, max_jump) if bridge else coarse
-    return _segment_box(rows, runs, length // 2, max_jump, axis=1)
+    runs = bridge_gaps(coarse, along_phase // 2, max_jump) if bridge else coarse
+    return _segment_box(rows, runs, along_phase // 2, max_jump, axis=1)
 
 
 def with_positions(phasor: NDArray[np.float32], offset: NDArray[np.float32] | None) -> NDArray[np.float32]:
@@ -517,16 +517,17 @@ def with_positions(phasor: NDArray[np.float32], offset: NDArray[np.float32] | No
 
 
 @numba.njit(cache=True, inline="always")
-def _slope(summed: NDArray[np.float32], r: int, a: int, b: int, min_span: float) -> float:
-    """Phase change per pixel of position from summed phasor ``(r, a)`` to ``(r, b)``; NaN if
-    either is empty or their positions lie less than `min_span` apart."""
-    if summed[2, r, a] <= 0 or summed[2, r, b] <= 0:
+def _slope(summed: NDArray[np.float32], ra: int, xa: int, rb: int, xb: int, min_span: float) -> float:
+    """Phase change per pixel of position (channel 3 over channel 2) from summed phasor
+    ``(ra, xa)`` to ``(rb, xb)``; NaN if either is empty or their positions lie less than
+    `min_span` apart."""
+    if summed[2, ra, xa] <= 0 or summed[2, rb, xb] <= 0:
         return np.nan
-    span = summed[3, r, b] / summed[2, r, b] - summed[3, r, a] / summed[2, r, a]
+    span = summed[3, rb, xb] / summed[2, rb, xb] - summed[3, ra, xa] / summed[2, ra, xa]
     if span < min_span:
         return np.nan
-    re = summed[0, r, b] * summed[0, r, a] + summed[1, r, b] * summed[1, r, a]
-    im = summed[1, r, b] * summed[0, r, a] - summed[0, r, b] * summed[1, r, a]
+    re = summed[0, rb, xb] * summed[0, ra, xa] + summed[1, rb, xb] * summed[1, ra, xa]
+    im = summed[1, rb, xb] * summed[0, ra, xa] - summed[0, rb, xb] * summed[1, ra, xa]
     return np.arctan2(im, re) / span
 
 
@@ -548,7 +549,7 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
                 if summed[2, r, x] <= 0 or abs(summed[3, r, x] / summed[2, r, x] - x) < 0.5:
                     continue  # describes its own pixel: nothing to move
                 a, b = max(x - reach, start), min(x + reach, end - 1)
-                left, right = _slope(summed, r, a, x, 0.25 * reach), _slope(summed, r, x, b, 0.25 * reach)
+                left, right = _slope(summed, r, a, r, x, 0.25 * reach), _slope(summed, r, x, r, b, 0.25 * reach)
                 if np.isfinite(left) and np.isfinite(right) and abs(left - right) <= 0.3 * max(abs(left), abs(right)):
                     if abs(left + right) >= 2 * min_slope:
                         slope[x] = 0.5 * (left + right)
@@ -601,6 +602,68 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
     also = also if turn_also else np.zeros((2, 1, 1), np.float32)
     over_rows(lambda rows: _recentre_rows(summed, coarse, max_jump, reach, min_slope, also, turn_also, rows),
               summed.shape[1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _recentre_columns(sums: NDArray[np.float32], runs: NDArray[np.float32], max_jump: float, reach: int,
+                      columns: NDArray[np.intp], block: int = 64) -> None:
+    """`recentre_along_phase` for the given (consecutive) `columns`, in blocks walked row by row."""
+    if columns.size == 0:
+        return
+    height = sums.shape[1]
+    start, end = np.empty((height, block), np.intp), np.empty((height, block), np.intp)
+    turn = np.zeros((height, block))
+    for c0 in range(columns[0], columns[-1] + 1, block):
+        n = min(c0 + block, columns[-1] + 1) - c0
+        _column_runs(runs, max_jump, c0, n, start, end)
+        for y in range(height):  # every turn first: the slopes read the phasors as summed
+            for j in range(n):
+                c, first = c0 + j, start[y, j]
+                turn[y, j] = 0.0
+                if first < 0 or sums[2, y, c] <= 0 or abs(sums[3, y, c] / sums[2, y, c] - y) < 0.5:
+                    continue
+                above = _slope(sums, max(y - reach, first), c, y, c, 0.25 * reach)
+                below = _slope(sums, y, c, min(y + reach, end[y, j] - 1), c, 0.25 * reach)
+                if np.isfinite(above) and np.isfinite(below):
+                    agree = abs(above - below) <= 0.3 * max(abs(above), abs(below))
+                    slope = 0.5 * (above + below) if agree else 0.0
+                else:
+                    slope = above if np.isfinite(above) else (below if np.isfinite(below) else 0.0)
+                turn[y, j] = -slope * (sums[3, y, c] / sums[2, y, c] - y)
+        for y in range(height):
+            for j in range(n):
+                if turn[y, j] != 0.0:
+                    c = c0 + j
+                    co, si = np.cos(turn[y, j]), np.sin(turn[y, j])
+                    re, im = sums[0, y, c], sums[1, y, c]
+                    sums[0, y, c], sums[1, y, c] = re * co - im * si, re * si + im * co
+
+
+def recentre_along_phase(sums: NDArray[np.float32], runs: NDArray[np.float32], *, max_jump: float,
+                         reach: int) -> None:
+    """Move each summed phasor's phase from the row its box describes back to its pixel's row,
+    in place (`recentre`'s counterpart along the phase direction).
+
+    Where a run down a column ends (a depth or shadow edge, the projected area's border) the
+    box of `smooth_phasors` along the phase direction is clipped to one side: it describes the
+    fringe up to half a box away, where the fringe's phase differs by the slope times the
+    distance (the projection's own slope along the phase direction, 2 pi per fringe period).
+    Measured before this existed on the 5 MP virtual rig's sphere and steps (README, "Sub-stripe
+    depth from one frame"): the 7 % of pixels within half a box of a run's end carried 45 % of
+    the squared error left after the whole-period slips.  The slope is measured as in
+    `recentre`, between the pixel's summed phasor and the one `reach` rows away on either side
+    within the run, over the distance between the rows they describe; where one side is
+    missing (the run ends) the other serves, since along the phase direction the slope is the
+    fringe's own, large and steady, not an error patch's.
+
+    Parameters
+    ----------
+    sums : (4, H, W) float32 array
+        Box sums (real, imaginary, weight, weight times the row), phase direction along axis 1.
+    runs : (H, W) float32 array
+        The line the box sums' runs were cut by (NaN outside every run).
+    """
+    over_rows(lambda columns: _recentre_columns(sums, runs, max_jump, reach, columns), sums.shape[2])
 
 
 @numba.njit(cache=True, inline="always")
@@ -776,7 +839,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
            max_disagreement: float = 0.5, min_modulation: float = 0.5, smooth: bool = True,
            rescue: bool = True, extend: bool = True, unmix: bool = True, average_levels: bool = True,
            recentre_phase: bool = True, max_window_contrast: float = MAX_WINDOW_CONTRAST,
-           dc_weights: bool = False, bridge: bool = True) -> Decoded:
+           dc_weights: bool = False, bridge: bool = True, recentre_rows: bool = True) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -833,6 +896,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         that stop at every undecoded pixel.  Bridged boxes for the decisions as well kept 0.1-0.2
         % more pixels, 10-15 % of them a fringe period off (README).  If false, the phase of the
         stopping boxes (for the benchmark's record).
+    recentre_rows : bool
+        Also move that phase from the row its box describes back to the pixel's
+        (`recentre_along_phase`); if false, leave it (for the benchmark's record).
 
     Returns
     -------
@@ -858,12 +924,18 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     offset = None if demod.offset is None or not recentre_phase else frame(demod.offset)
     phasor = with_positions(phasor, offset)
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
-    fine = np.zeros((2, 1, 1), np.float32)  # boxes across gaps (`bridge_gaps`): the kept pixels' phase
+    # the kept pixels' phase: boxes across the Gray code's gaps (`bridge_gaps`), moved back to
+    # their pixel's row (`recentre_along_phase`); the decisions use the plain boxes
+    fine, runs = np.zeros((4, 1, 1), np.float32), coarse
     if smooth:
         rows = _twiced_box(phasor, coarse, carriers.window, max_jump)
-        if bridge:
-            fine = smooth_along_phase(rows[:2], coarse, along_phase, max_jump, bridge=True)
-        summed = smooth_along_phase(rows, coarse, along_phase, max_jump)
+        if bridge or recentre_rows:
+            runs = bridge_gaps(coarse, along_phase // 2, max_jump) if bridge else coarse
+            fine = np.empty((4, *coarse.shape), np.float32)
+            fine[:3] = rows[:3]
+            np.multiply(rows[2], np.arange(coarse.shape[0], dtype=np.float32)[:, None], out=fine[3])
+            fine = _segment_box(fine, runs, along_phase // 2, max_jump, axis=1)
+        summed = _segment_box(rows, coarse, along_phase // 2, max_jump, axis=1)
         del rows
     else:
         summed = phasor.copy()
@@ -871,6 +943,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     if offset is not None:
         recentre(summed, coarse, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope,
                  also=fine if use_fine else None)
+    if use_fine and recentre_rows:
+        recentre_along_phase(fine, runs, max_jump=max_jump, reach=along_phase)
+    del runs
     shape = coarse.shape
     line, strong, sure = np.empty(shape, np.float32), np.empty(shape, bool), np.empty(shape, bool)
     period = float(spec.fringe_period)
