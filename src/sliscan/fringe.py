@@ -507,9 +507,9 @@ def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, 
 def with_positions(phasor: NDArray[np.float32], offset: NDArray[np.float32] | None) -> NDArray[np.float32]:
     """`phasor` ``(3, H, W)`` (carriers along axis 2) with a fourth channel for `recentre`: its
     third channel (the fringes' sum, the weight) times the position along the carriers that
-    the pixel's envelopes describe, ``x + offset`` (`Demodulated.offset`, framed likewise).  Box sums then carry, divided by
-    the summed third channel, the position the summed phasor describes.  Unchanged without
-    offsets."""
+    the pixel's envelopes describe, ``x + offset`` (`Demodulated.offset`, framed likewise).
+    Box sums then carry, divided by the summed third channel, the position the summed phasor
+    describes.  Unchanged without offsets."""
     if offset is None:
         return phasor
     position = np.arange(phasor.shape[2], dtype=np.float32)[None, :] + offset
@@ -595,8 +595,9 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
         Box-summed phasors with their positions (`with_positions`), carriers along axis 2.
     coarse : (H, W) float32 array
         The line the runs were cut by in `smooth_phasors` (NaN outside every run).
-    also : (2, H, W) float32 array, optional
-        Other sums of the same phasors (real, imaginary), turned by the same angle per pixel.
+    also : (K, H, W) float32 array, optional
+        Other sums of the same phasors, whose channels 0 and 1 (real, imaginary) are turned by
+        the same angle per pixel.
     """
     turn_also = also is not None
     also = also if turn_also else np.zeros((2, 1, 1), np.float32)
@@ -700,8 +701,8 @@ def _rescue_rows(summed: NDArray[np.float32], line: NDArray[np.float32], strong:
                  out: NDArray[np.float32], stripe: NDArray[np.int16]) -> None:
     """Per pixel of `rows`: the sure line, or a strong pixel's phase unwrapped against
     `reference` if it lands within a quarter period of it (and `rescue`), else NaN; if
-    `use_fine`, a kept line is then replaced by the phase of `fine` ``(2, H, W)`` (real,
-    imaginary) in the fringe period nearest to it; `stripe`: the line's stripe
+    `use_fine`, a kept line is then replaced by the phase of `fine` ``(K, H, W)`` (channels 0
+    and 1: real, imaginary) in the fringe period nearest to it; `stripe`: the line's stripe
     (`patterns.stripe_of_line`), -1 for NaN or beyond the projector."""
     for r in rows:
         for x in range(line.shape[1]):
