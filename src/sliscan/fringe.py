@@ -927,10 +927,11 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
     # the kept pixels' phase: boxes across the Gray code's gaps (`bridge_gaps`), moved back to
     # their pixel's row (`recentre_along_phase`); the decisions use the plain boxes
+    use_fine = smooth and (bridge or recentre_rows)
     fine, runs = np.zeros((4, 1, 1), np.float32), coarse
     if smooth:
         rows = _twiced_box(phasor, coarse, carriers.window, max_jump)
-        if bridge or recentre_rows:
+        if use_fine:
             runs = bridge_gaps(coarse, along_phase // 2, max_jump) if bridge else coarse
             fine = np.empty((4, *coarse.shape), np.float32)
             fine[:3] = rows[:3]
@@ -940,7 +941,6 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         del rows
     else:
         summed = phasor.copy()
-    use_fine = fine.shape[1:] == coarse.shape
     if offset is not None:
         recentre(summed, coarse, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope,
                  also=fine if use_fine else None)
