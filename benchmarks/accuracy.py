@@ -68,6 +68,11 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
         # a finer fringe (1.5 stripes instead of 2): lower noise in projector lines, but a Gray
         # code off by one stripe deep inside a stripe no longer unwraps to the right period
         specs["4-bit + phase (period 1.5 stripes)"] = base.with_(phase_period=1.5 * base.phase_lines / base.stripes)
+        # wider carrier spacing (seventeenth session): a shorter window, so less light from across
+        # an edge in it, but higher carriers, which the blur of both devices weakens
+        for spacing in (40, 48, 64):
+            specs[f"sliscan 4-bit (spacing {spacing})"] = patterns.default_spec(
+                projector, carriers=patterns.scale_carriers(tuple(spacing * k for k in (4, 3, 2, 1)), width))
         for bits in (6, 8):
             carriers = tuple(k * width / 8 / bits for k in range(1, bits + 1))
             specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
@@ -95,6 +100,7 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (boxes stop at gaps)": ("sliscan 4-bit + phase", dict(fringe_options=dict(bridge=False))),
     "sliscan 4-bit + phase (no recentring along the phase)": ("sliscan 4-bit + phase",
                                                               dict(fringe_options=dict(recentre_rows=False))),
+    "sliscan 4-bit + phase (no edge margin)": ("sliscan 4-bit + phase", dict(fringe_options=dict(edge_margin=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
     "thesis 4-bit (decided by order)": ("thesis 4-bit", dict(decode_options=dict(order=True))),
@@ -132,7 +138,7 @@ def main() -> None:
         compare(rig, projector, args)
         return
     rows = []
-    header = (f"{'pattern':22s} {'decoder':9s} {'scene':7s} {'albedo':8s} {'seed':>4s} {'stripe%':>8s} "
+    header = (f"{'pattern':22s} {'decoder':9s} {'scene':7s} {'albedo':8s} {'seed':>4s} {'stripe%':>8s} {'off>1%':>6s} "
               f"{'complete%':>9s} {'outlier%':>8s} {'gross%':>6s} {'rms mm':>8s} {'med mm':>7s} {'oracle med':>10s} {'s':>5s}")
     print(header)
     keep = [p for p in args.patterns.split(",") if p]
