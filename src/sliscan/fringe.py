@@ -836,9 +836,9 @@ MAX_WINDOW_CONTRAST = 3.0
 #: period off beside one.  Those patches are where a window along the carriers, or a box along
 #: the phase direction, described the surface across the edge, and where the edge's own jump is
 #: close to a whole period the phase agrees with their wrong stripe.  Measured on the virtual
-#: rig (README, "Sub-stripe depth from one frame"): RMS error 16-21 % lower on the smooth
-#: spheres (5 MP seeds 0 and 7, 1296x972 seeds 1 and 2, an unseen 1920x1440 rig) for 0.2-0.5
-#: points of completeness, the steps 3-10 % for 0.5-0.8 points; medians unchanged.  At 1/10
+#: rig (README, "Sub-stripe depth from one frame"): RMS error 14-21 % lower on the smooth
+#: spheres (5 MP seeds 0 and 7, 1296x972 seeds 1 and 2, an unseen 1920x1440 rig) for 0.2-0.7
+#: points of completeness, the steps 3-10 % for 0.5-0.9 points; medians unchanged.  At 1/10
 #: the 5 MP sphere's RMS falls further (5.4 -> 5.0 mm) for twice the completeness.
 EDGE_MARGIN = 1 / 16
 
