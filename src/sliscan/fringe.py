@@ -1031,7 +1031,10 @@ def near_jumps(line: NDArray[np.float32], *, radius: int, jump: float) -> NDArra
     """
     finite = np.isfinite(line)
     square = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-    with np.errstate(invalid="ignore"):
-        near = cv2.dilate(np.where(finite, line, np.float32(-np.inf)).astype(np.float32, copy=False), square) - line > jump
-        near |= line - cv2.erode(np.where(finite, line, np.float32(np.inf)).astype(np.float32, copy=False), square) > jump
+    def filled(value: float) -> NDArray[np.float32]:
+        return np.where(finite, line, np.float32(value)).astype(np.float32, copy=False)
+
+    with np.errstate(invalid="ignore"):  # one filled copy at a time
+        near = cv2.dilate(filled(-np.inf), square) - line > jump
+        near |= line - cv2.erode(filled(np.inf), square) > jump
     return near & finite
