@@ -2,7 +2,8 @@
 
 On the same rendered frames (the virtual rig's sphere under the accuracy benchmark's smooth
 albedo conditions, sliscan's default pattern), for a 1280x1024 and a 2592x1944 camera and
-both demodulators: each stage of `Scanner.scan` (demodulate, decode, triangulate with its
+each Scanner configuration of `CONFIGS` (the two demodulators, the real-time baseband path with
+and without the 3D filters): each stage of `Scanner.scan` (demodulate, decode, triangulate with its
 filters), the whole in-memory scan, and the export to npz and PLY; median and spread (min to
 max) over 7 runs after one warm-up run, 3 runs for anything over 1 s; the peak memory of one
 scan (ru_maxrss of a fresh subprocess).  In the same run, when installed (the `bench`
@@ -47,6 +48,14 @@ PROJECTOR = (1024, 768)
 #: `--pattern` choices: sliscan's stripe pattern and the one with a phase channel (issue 8).
 PATTERNS = {"default": patterns.default_spec, "phase": patterns.phase_spec}
 
+#: `--methods` choices: the `Scanner` options of each.  ``realtime``: the baseband path as a
+#: stream of frames from one rig uses it, carriers found in the first frame and kept, without
+#: the 3D filters (issue 6's configuration: demodulate + decode + triangulate).
+CONFIGS: dict[str, dict] = {"window": dict(method="window"), "bandpass": dict(method="bandpass"),
+                            "baseband": dict(method="baseband"),
+                            "realtime": dict(method="baseband", reuse_carriers=True, remove_speckles=False,
+                                             remove_narrow_runs=False)}
+
 
 def frame(camera: tuple[int, int], cache: Path, pattern: str = "default") -> tuple[np.ndarray, simulate.Rig, PatternSpec]:
     """The sphere capture for `camera` (rendered once, then read from `cache`), its rig and spec."""
@@ -74,9 +83,10 @@ def timed(fn: Callable[[], object], runs: int) -> dict:
     return {"median": statistics.median(seconds), "min": min(seconds), "max": max(seconds), "runs": runs}
 
 
-def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, method: str, runs: int) -> dict[str, dict]:
-    """Per-stage and whole-scan times of one frame (stages from `ScanResult.timings`)."""
-    scanner = Scanner(spec, rig.calibration, method=method)
+def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, config: str, runs: int) -> dict[str, dict]:
+    """Per-stage and whole-scan times of one frame (stages from `ScanResult.timings`) with the
+    Scanner options of `CONFIGS[config]`."""
+    scanner = Scanner(spec, rig.calibration, **CONFIGS[config])
     results = []
     total = timed(lambda: results.append(scanner.scan(image)), runs)
     out = {}
@@ -85,9 +95,10 @@ def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, method:
         out[stage] = {"median": statistics.median(seconds), "min": min(seconds), "max": max(seconds),
                       "runs": len(seconds)}
     out["scan"] = total
-    demod, _ = scanner.demodulate(image)
-    out["decode only"] = timed(lambda: decode(demod, spec), runs)
-    out["decode only, per-pixel decisions"] = timed(lambda: decode(demod, spec, order=False), runs)
+    if scanner.method != "baseband":  # its decoding is part of one pass with the triangulation
+        demod, _ = scanner.demodulate(image)
+        out["decode only"] = timed(lambda: decode(demod, spec), runs)
+        out["decode only, per-pixel decisions"] = timed(lambda: decode(demod, spec, order=False), runs)
     result = results[-1]
     with tempfile.TemporaryDirectory() as tmp:
         out["export npz"] = timed(lambda: result.save_npz(Path(tmp) / "scan.npz"), runs)
@@ -95,20 +106,20 @@ def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, method:
     return out
 
 
-def peak_memory_mib(camera: tuple[int, int], method: str, cache: Path, pattern: str = "default") -> float:
+def peak_memory_mib(camera: tuple[int, int], config: str, cache: Path, pattern: str = "default") -> float:
     """Peak resident memory (MiB) of a fresh process that loads the frame, builds a Scanner and
     scans once, with the compiled kernels already cached.
 
     Read from ``VmHWM`` in ``/proc/self/status``, which a new program image starts afresh:
     ``ru_maxrss`` survives ``exec``, so a child started from this process (holding the scans
     of the timing runs) would report this process's size instead of its own."""
-    code = ("import sys; sys.path.insert(0, {bench!r}); from speed import frame; "
+    code = ("import sys; sys.path.insert(0, {bench!r}); from speed import CONFIGS, frame; "
             "from sliscan.pipeline import Scanner; from pathlib import Path; "
             "image, rig, spec = frame({camera!r}, Path({cache!r}), {pattern!r}); "
-            "Scanner(spec, rig.calibration, method={method!r}).scan(image); "
+            "Scanner(spec, rig.calibration, **CONFIGS[{config!r}]).scan(image); "
             "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM')))")
     command = [sys.executable, "-c", code.format(bench=str(Path(__file__).parent), camera=camera, cache=str(cache),
-                                                 method=method, pattern=pattern)]
+                                                 config=config, pattern=pattern)]
     # twice: a first process may compile the numba kernels (LLVM's memory, not the scan's) and caches them
     outs = [subprocess.run(command, check=True, capture_output=True, text=True).stdout for _ in range(2)]
     return int(outs[-1].split()[-1]) / 1024
@@ -194,7 +205,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="1280x1024 only, 3 runs")
     parser.add_argument("--runs", type=int, default=7)
-    parser.add_argument("--methods", default="window,bandpass")
+    parser.add_argument("--methods", default=",".join(CONFIGS),
+                        help=f"comma-separated, of {', '.join(CONFIGS)} (see CONFIGS)")
     parser.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "sliscan-speed-frames"))
     parser.add_argument("--pattern", choices=sorted(PATTERNS), default="default",
                         help="the scanned pattern: sliscan's stripes, or with a phase channel (issue 8)")
@@ -221,10 +233,13 @@ def main() -> None:
                                      "mib": peak_memory_mib(camera, method, cache, args.pattern)})
         if args.no_peers:
             continue
-        ours = scans.get("window", next(iter(scans.values())))
+        ours = {method: scans[method] for method in ("window", "realtime") if method in scans} or dict(
+            [next(iter(scans.items()))])
         for peer, t in (("OpenCV PSP phase + unwrap (3 frames; its FTP crashes)", opencv_psp(image, runs)),
                         ("OpenCV Gray code decode (stereo, 2 x 22 frames)", opencv_graycode(camera, runs))):
-            report["peers"].append({"camera": name, "name": peer, "peer": t and t["median"], "sliscan": ours})
+            for method, seconds in ours.items():
+                report["peers"].append({"camera": name, "name": f"{peer} / sliscan {method}", "peer": t and t["median"],
+                                        "sliscan": seconds})
         if camera == (1280, 1024):
             sliscan_pmp, fringes_pmp = pmp_times(camera, runs)
             report["peers"].append({"camera": name, "name": "fringes PMP decode, 3 freq x 4 steps",

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.decode import Decoded, _dc_floor, _zero_stripe, agrees_with_neighbours, two_means
+from sliscan.decode import Decoded, _zero_stripe, dark_level, agrees_with_neighbours, two_means
 from sliscan.demodulate import Demodulated
 from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
 from sliscan.types import PatternSpec
@@ -150,7 +150,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     Decoded
     """
     bits = spec.bits
-    dc = _dc_floor(demod.dc)
+    dc = np.maximum(demod.dc, np.float32(dark_level(demod.dc)))
     reference = demod.amplitude[bits] if spec.pilot is not None else dc
     ratio = demod.amplitude[:bits] / np.maximum(reference, 1e-6)[None]
     lit = _lit(demod, spec, dc, min_modulation, min_snr)

@@ -169,6 +169,24 @@ def test_scan_decisions_are_the_decoders_of_the_python_api(plane: tuple[Path, st
     np.testing.assert_allclose(from_cli.points, expected.points, rtol=0, atol=1e-4, equal_nan=True)
 
 
+def test_scan_method_baseband_is_the_real_time_path_of_the_python_api(plane: tuple[Path, str],
+                                                                     tmp_path: Path) -> None:
+    folder, _ = plane
+    stdout = ok("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+                "--method", "baseband", "--npz", "scan.npz", "--timings", cwd=tmp_path).stdout.splitlines()
+    assert [line.split()[0] for line in stdout[1:]] == ["read", "demodulate", "decode", "triangulate", "write",
+                                                         "total"]
+    from_cli = npz.read_scan_npz(tmp_path / "scan.npz")
+    expected = Scanner(PatternSpec.load(folder / "cp.json"), Calibration.load(folder / "rig.json"),
+                       method="baseband").scan(read_image(folder / "capture.png"))
+    np.testing.assert_array_equal(from_cli.valid, expected.valid)
+    assert from_cli.valid.mean() > 0.5
+    np.testing.assert_allclose(from_cli.points, expected.points, rtol=0, atol=1e-4, equal_nan=True)
+    fails_cleanly(("scan", str(folder / "capture.png"), "--pattern", str(folder / "cp.json"), "--calibration",
+                   str(folder / "rig.json"), "--method", "baseband", "--decisions", "order", "--npz", "o.npz"),
+                  "baseband", tmp_path)
+
+
 @pytest.mark.parametrize("method", ["svd", "lstsq"])
 def test_calibrate_recovers_the_rig(tmp_path: Path, method: str) -> None:
     rig = simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR)

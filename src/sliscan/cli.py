@@ -43,7 +43,7 @@ from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
-from sliscan.pipeline import DECISIONS, Scanner, ScanStages, decision_options
+from sliscan.pipeline import DECISIONS, METHODS, Scanner, ScanStages, decision_options
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
@@ -1067,8 +1067,9 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
               help="Write PREFIX{X,Y,Z}.byt, PREFIXC.bmp, PREFIXI.bmp.")
 @click.option("--ply", type=OUTPUT_FILE, help="Write the valid points as a binary PLY point cloud.")
 @click.option("--npz", type=OUTPUT_FILE, help="Write every array of the scan to one npz file.")
-@click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
-              help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
+@click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
+              help="Demodulator: sliscan's sliding window, the thesis's Butterworth band-pass (3.4), or baseband: "
+                   "the real-time path (decimated envelopes, per-pixel decisions; stripe patterns only).")
 @_decisions_option
 @click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
 @click.option("--report", type=OUTPUT_FILE,
@@ -1640,8 +1641,9 @@ browser (needs sliscan[report]).""")
 @click.argument("captures", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--pattern", "pattern_path", type=INPUT_FILE, help="PatternSpec JSON of the projected pattern.")
 @_calibration_options
-@click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
-              help="Demodulator: sliscan's sliding window, or the thesis's Butterworth band-pass (3.4).")
+@click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
+              help="Demodulator: sliscan's sliding window, the thesis's Butterworth band-pass (3.4), or baseband: "
+                   "the real-time path (decimated envelopes, per-pixel decisions; stripe patterns only).")
 @_decisions_option
 @click.option("--truth", type=INPUT_FILE,
               help="Ground truth of a simulated capture (sliscan simulate --truth): adds the error against it.")

@@ -32,7 +32,7 @@ from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCE
                          _overwrite_option, _progress, _run_calibrate_board, _run_calibrate_target, _sequence_spec,
                          cli)
 from sliscan.formats.calibration import load_calibration
-from sliscan.pipeline import Scanner, decision_options
+from sliscan.pipeline import METHODS, Scanner, decision_options
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, PatternSpec
 
@@ -464,8 +464,8 @@ Examples:
               help="PatternSpec JSON of a single-shot pattern (sliscan pattern composite).")
 @click.option("--calibration", type=INPUT_FILE, required=True, help="Calibration JSON of the rig (and virtual: the rig).")
 @_device_options
-@click.option("--method", type=click.Choice(["window", "bandpass"]), default="window", show_default=True,
-              help="Demodulator (as sliscan scan).")
+@click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
+              help="Demodulator (as sliscan scan; baseband: the real-time path).")
 @_decisions_option
 @click.option("--frames", type=click.IntRange(min=1), help="Stop after this many frames.")
 @click.option("--seconds", type=POSITIVE, help="Stop after this many seconds.")

@@ -142,10 +142,11 @@ class _Scale:
                    span=np.array([max(on - off, 1e-6) for off, on in clusters]))
 
 
-def _dc_floor(dc: NDArray[np.float32]) -> NDArray[np.float32]:
-    """The DC floored at 2 % of the frame's bright level, so black pixels (outside the
-    projector, no ambient light) do not look modulated by dividing noise by 0."""
-    return np.maximum(dc, 0.02 * float(np.percentile(dc[::4, ::4], 99)) + 1e-6)
+def dark_level(dc: NDArray[np.float32]) -> float:
+    """2 % of the frame's bright DC level: the floor under the DC that `decode` divides by, so
+    black pixels (outside the projector, no ambient light) do not look modulated by dividing
+    noise by 0."""
+    return 0.02 * float(np.percentile(dc[::4, ::4], 99)) + 1e-6
 
 
 @numba.njit(cache=True, nogil=True)
@@ -168,23 +169,83 @@ def _lit_rows(amplitude: NDArray[np.float32], carriers: NDArray[np.intp], dc: ND
             lit[y, x] = ok
 
 
-def _lit(demod: Demodulated, spec: PatternSpec, dc: NDArray[np.float32], min_modulation: float,
-         min_snr: float) -> NDArray[np.bool_]:
+@dataclass(frozen=True, eq=False)
+class FrameLevels:
+    """What `decode` reads from the whole frame before it decides any pixel.
+
+    Attributes
+    ----------
+    dc : (H, W) float32 array
+        The DC floored at its `dark_level` (``floor``).
+    floor : float
+    reference : (H, W) float32 array
+        What each bit's envelope is divided by: the pilot's envelope, or the floored DC.
+    lit_carriers : (M,) intp array
+        The carriers that say a pixel is lit: the pilot, or every bit.
+    lit_scale : _Scale
+        Their off and on levels over the DC (`_lit`).
+    lit : (H, W) bool array
+        Pixels whose carriers stand clear of the noise (`_lit`).
+    bits : _Scale
+        Each bit's off and on level over the reference, on the lit pixels.
+    """
+
+    dc: NDArray[np.float32]
+    floor: float
+    reference: NDArray[np.float32]
+    lit_carriers: NDArray[np.intp]
+    lit_scale: _Scale
+    lit: NDArray[np.bool_]
+    bits: _Scale
+
+    @classmethod
+    def of(cls, demod: Demodulated, spec: PatternSpec, *, min_modulation: float, min_snr: float,
+           limit: int = 200_000) -> FrameLevels:
+        """The levels of one demodulated frame (`decode`'s `min_modulation` and `min_snr`), each
+        from about `limit` pixels at most (`_Scale.of`)."""
+        floor = dark_level(demod.dc)
+        dc = np.maximum(demod.dc, np.float32(floor))
+        reference = np.maximum(demod.amplitude[spec.pilot_index] if spec.pilot is not None else dc, np.float32(1e-6))
+        carriers = np.array([spec.pilot_index] if spec.pilot is not None else range(spec.bits), dtype=np.intp)
+        lit_scale = _Scale.of(demod.amplitude, list(carriers), dc, np.isfinite(demod.amplitude[carriers[0]] / dc),
+                              limit)
+        lit = _lit(demod, dc, carriers, lit_scale, min_modulation, min_snr)
+        bits = _Scale.of(demod.amplitude, list(range(spec.bits)), reference, lit, limit)
+        return cls(dc=dc, floor=floor, reference=reference, lit_carriers=carriers, lit_scale=lit_scale, lit=lit,
+                   bits=bits)
+
+
+def _lit(demod: Demodulated, dc: NDArray[np.float32], carriers: NDArray[np.intp], scale: _Scale,
+         min_modulation: float, min_snr: float) -> NDArray[np.bool_]:
     """Pixels whose carriers stand clear of the noise.
 
     Each carrier's envelope over the DC is put on its own 0 (off) .. 1 (on) scale over the
-    whole frame, so a code whose only bit rides on the most attenuated carrier counts as
-    much as any other.  A pixel is lit when its strongest carrier (the pilot, if any) reaches
-    `min_modulation` on that scale and stands `2 * min_snr` noise deviations above zero.
+    whole frame (`scale`), so a code whose only bit rides on the most attenuated carrier
+    counts as much as any other.  A pixel is lit when its strongest of `carriers` (the pilot,
+    if any) reaches `min_modulation` on that scale and stands `2 * min_snr` noise deviations
+    above zero.
     """
-    carriers = [spec.pilot_index] if spec.pilot is not None else list(range(spec.bits))
-    scale = _Scale.of(demod.amplitude, carriers, dc, np.isfinite(demod.amplitude[carriers[0]] / dc))
     lit = np.empty(dc.shape, dtype=bool)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
-    which = np.array(carriers, dtype=np.intp)
-    over_rows(lambda rows: _lit_rows(demod.amplitude, which, dc, scale.off, scale.span, np.float32(min_modulation), noise,
-                                     np.float32(2 * min_snr), rows, lit), dc.shape[0])
+    over_rows(lambda rows: _lit_rows(demod.amplitude, carriers, dc, scale.off, scale.span, np.float32(min_modulation),
+                                     noise, np.float32(2 * min_snr), rows, lit), dc.shape[0])
     return lit
+
+
+@numba.njit(cache=True, inline="always")
+def is_settled(code: int, unclear: int, first_unclear: int, stripe_of_code: NDArray[np.int64],
+               stripe_borders: bool) -> bool:
+    """Whether a pixel's Gray `code` decides its stripe: every bit clear, or, with
+    `stripe_borders`, one unclear bit (the `first_unclear`, 0 = most significant) whose flip
+    gives the neighbouring stripe: a pixel on a stripe border (Gray code neighbours differ in
+    one bit), off by at most one stripe either way."""
+    if unclear == 0:
+        return True
+    if not stripe_borders or unclear > 1:
+        return False
+    bits = int(np.log2(stripe_of_code.size))
+    s, other = stripe_of_code[code], stripe_of_code[code ^ (1 << (bits - 1 - first_unclear))]
+    return other >= 0 and abs(other - s) == 1
 
 
 @numba.njit(cache=True, nogil=True)
@@ -222,12 +283,7 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
                     if first_unclear < 0:
                         first_unclear = n
             s = stripe_of_code[code]
-            settled = unclear == 0
-            if stripe_borders and unclear == 1:
-                # one unclear bit whose flip gives the neighbouring stripe: a pixel on a stripe
-                # border (Gray code neighbours differ in one bit), off by at most one stripe
-                other = stripe_of_code[code ^ (1 << (bits - 1 - first_unclear))]
-                settled = other >= 0 and abs(other - s) == 1
+            settled = is_settled(code, unclear, first_unclear, stripe_of_code, stripe_borders)
             modelled = residual[y, x] <= max_residual or not any_on
             stripe[y, x] = s
             c = np.float32(2) * least
@@ -534,10 +590,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     phase_channel = bool(spec.phase_carriers)
     min_confidence = (0.05 if phase_channel else 0.1) if min_confidence is None else min_confidence
     min_snr = (1.5 if phase_channel else 3.0) if min_snr is None else min_snr
-    dc = _dc_floor(demod.dc)
-    reference = np.maximum(demod.amplitude[spec.pilot_index] if spec.pilot is not None else dc, np.float32(1e-6))
-    lit = _lit(demod, spec, dc, min_modulation, min_snr)
-    scale = _Scale.of(demod.amplitude, list(range(bits)), reference, lit)
+    frame = FrameLevels.of(demod, spec, min_modulation=min_modulation, min_snr=min_snr)
+    dc, reference, lit, scale = frame.dc, frame.reference, frame.lit, frame.bits
     levels = np.empty((bits, *dc.shape), dtype=np.float32)
     stripe = np.empty(dc.shape, dtype=np.int16)
     confidence = np.empty(dc.shape, dtype=np.float32)

@@ -8,6 +8,7 @@ pattern (``pmp``, ``graycode``) goes the same way from a whole capture sequence:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -16,11 +17,12 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sliscan import fringe
+from sliscan import fastscan, fringe
 from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
+from sliscan.baseband import Baseband, BasebandPlan, demodulate_baseband
 from sliscan.decode import Decoded, decode
-from sliscan.demodulate import Carriers, Demodulated, demodulate
+from sliscan.demodulate import Carriers, Demodulated, along_carriers, check_exposure, demodulate, detect_carriers
 from sliscan.outliers import default_max_jump, remove_narrow_runs, remove_speckles
 from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
@@ -121,6 +123,10 @@ def baseline_direction(calibration: Calibration) -> str:
 #: for the thesis's (`decode.decode`'s ``order=None``); ``order``: down each column as a whole
 #: (`sliscan.stripe_order`), the more complete and about 2-3x slower decoding; ``pixel``: each
 #: pixel from its own bits, the faster one.
+#: `Scanner` methods (`sliscan scan --method`): the demodulators of `sliscan.demodulate` and the
+#: real-time path of `sliscan.fastscan`.
+METHODS = ("window", "bandpass", "baseband")
+
 DECISIONS: dict[str, dict[str, Any]] = {"auto": {}, "order": {"order": True}, "pixel": {"order": False}}
 
 
@@ -181,8 +187,13 @@ class Scanner:
         undistorts the projector exactly (`sliscan.reconstruct.triangulate`).
     calibration : Calibration
         Camera and projector matrices; the capture must have the camera's size.
-    method : {"window", "bandpass"}
-        Demodulator (see `sliscan.demodulate`).
+    method : {"window", "bandpass", "baseband"}
+        Demodulator: `sliscan.demodulate`'s window (default) or band-pass, or the real-time
+        path of `sliscan.fastscan` (``"baseband"``: decimated envelopes, then each pixel's
+        stripe and point in one compiled pass; stripe patterns only, per-pixel decisions,
+        `decode_options` limited to ``min_modulation``, ``min_confidence`` and
+        ``stripe_borders``).  Its setup (`stripe_geometry`) measures every stripe's points
+        once: about 2 s at 5 MP, on the first scan.
     decode_options : dict
         Keyword arguments for `sliscan.decode.decode` (thresholds), or for multi-frame kinds
         `sliscan.pmp.decode_pmp` / `sliscan.graycode.decode_graycode`.
@@ -226,23 +237,66 @@ class Scanner:
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
     _tests: dict[tuple[str, float], MeasurableTest] = field(default_factory=dict, init=False, repr=False)
+    _plan: tuple[Carriers, BasebandPlan] | None = field(default=None, init=False, repr=False)
+    _geometry: fastscan.StripeGeometry | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.method not in ("window", "bandpass"):
-            raise InputError(f"method must be 'window' or 'bandpass', got {self.method!r}")
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.method == "baseband" and self.spec.kind not in MULTI_FRAME_KINDS:
+            if self.spec.phase_carriers:
+                raise InputError("method 'baseband' decodes stripes only; a pattern with a phase channel needs the "
+                                 "'window' method")
+            unknown = set(self.decode_options) - {"min_modulation", "min_confidence", "stripe_borders", "order"}
+            if unknown or self.decode_options.get("order"):
+                raise InputError(f"method 'baseband' decides each pixel on its own and takes only min_modulation, "
+                                 f"min_confidence and stripe_borders, got {sorted(self.decode_options)}")
         if tuple(self.calibration.projector.size) != tuple(self.spec.projector_size):
             w, h = self.calibration.projector.size
             pw, ph = self.spec.projector_size
             raise InputError(f"pattern is for a {pw}x{ph} projector but the calibration's projector is {w}x{h}")
 
     def demodulate(self, image: ArrayLike) -> tuple[Demodulated, Carriers]:
-        """Carrier envelopes of one frame (checked against the camera size)."""
+        """Carrier envelopes of one frame (checked against the camera size); for ``baseband``
+        interpolated to every pixel (`Baseband.demodulated`)."""
+        if self.method == "baseband":
+            baseband, carriers = self.demodulate_baseband(image)
+            demod = baseband.demodulated(self.calibration.camera.shape[1 if self.spec.orientation == "rows" else 0])
+            if self.spec.orientation == "columns":
+                demod = Demodulated(*(np.ascontiguousarray(np.swapaxes(a, -1, -2)) for a in
+                                      (demod.amplitude, demod.dc, demod.residual)))
+            return demod, carriers
         img = check_image("capture", image, shape=self.calibration.camera.shape)
-        carriers = self._carriers if self.reuse_carriers else None
-        demod, found = demodulate(img, self.spec, method=self.method, carriers=carriers)
+        demod, found = demodulate(img, self.spec, method=self.method, carriers=self._known_carriers())
+        self._keep_carriers(found)
+        return demod, found
+
+    def _known_carriers(self) -> Carriers | None:
+        return self._carriers if self.reuse_carriers else None
+
+    def _keep_carriers(self, found: Carriers) -> None:
         if self.reuse_carriers:
             self._carriers = found
-        return demod, found
+
+    def demodulate_baseband(self, image: ArrayLike) -> tuple[Baseband, Carriers]:
+        """`sliscan.baseband.demodulate_baseband` of one frame (checked against the camera size
+        and its exposure), with the plan of its carriers (kept while they stay the same)."""
+        img = check_image("capture", image, shape=self.calibration.camera.shape)
+        check_exposure(img)
+        carriers = self._known_carriers() or detect_carriers(img, self.spec)
+        self._keep_carriers(carriers)
+        view = along_carriers(img, self.spec)
+        if self._plan is None or self._plan[0] is not carriers:
+            self._plan = carriers, BasebandPlan.of(*view.shape, carriers)
+        return demodulate_baseband(view, self._plan[1]), carriers
+
+    def stripe_geometry(self) -> fastscan.StripeGeometry:
+        """The rig's `sliscan.fastscan.StripeGeometry` for the pattern, built on first use and kept."""
+        if self._geometry is None:
+            direction = self.spec.orientation
+            self._geometry = fastscan.StripeGeometry.of(self.triangulator(direction), self.measurable_test(direction),
+                                                        self.spec)
+        return self._geometry
 
     def scan(self, image: ArrayLike) -> ScanResult:
         """Point cloud of one camera frame of the composite pattern, or of one capture sequence
@@ -266,6 +320,8 @@ class Scanner:
         InputError
             If a frame is not of the camera's size, or a sequence has the wrong number of frames.
         """
+        if self.method == "baseband" and self.spec.kind not in MULTI_FRAME_KINDS:
+            return self._scan_baseband(image)[0]
         return self.scan_stages(image)[0]
 
     def scan_stages(self, image: ArrayLike) -> tuple[ScanResult, ScanStages]:
@@ -276,6 +332,12 @@ class Scanner:
         """
         if self.spec.kind in MULTI_FRAME_KINDS:
             return self._scan_sequence(image)
+        if self.method == "baseband":
+            result, baseband, carriers = self._scan_baseband(image)
+            demod = self.demodulate(image)[0]
+            options = dict(self.decode_options, order=False, border_reach=0, neighbour_radius=0)
+            return result, ScanStages(self.spec.orientation, demodulated=demod, carriers=carriers,
+                                      decoded=decode(demod, self.spec, **options))
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         demod, carriers = self.demodulate(image)
@@ -318,6 +380,11 @@ class Scanner:
         `_finish`."""
         points, valid = self.triangulator(direction).measure(proj_map, valid, self.measurable_test(direction),
                                                              other=other)
+        return points, self._filtered(proj_map, valid, direction, window)
+
+    def _filtered(self, proj_map: NDArray[np.floating], valid: NDArray[np.bool_], direction: str,
+                  window: int | None) -> NDArray[np.bool_]:
+        """`valid` less what the 3D filters of `_measured` drop."""
         max_jump = default_max_jump(self.spec, direction)
 
         def despeckle(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -332,7 +399,28 @@ class Scanner:
             narrowed = remove_narrow_runs(proj_map, valid, max_jump=max_jump, window=window,
                                           axis=1 if direction == "rows" else 0)
             valid = despeckle(narrowed) if (narrowed != valid).any() else valid
-        return points, valid
+        return valid
+
+    def _scan_baseband(self, image: ArrayLike) -> tuple[ScanResult, Baseband, Carriers]:
+        """`scan` with method ``baseband`` (`sliscan.fastscan`), then the 3D filters that are on;
+        also the baseband envelopes and the carriers."""
+        t0 = time.perf_counter()
+        baseband, carriers = self.demodulate_baseband(image)
+        t1 = time.perf_counter()
+        options = {k: v for k, v in self.decode_options.items() if k != "order"}
+        levels = fastscan.frame_levels(baseband, self.spec, **{k: v for k, v in options.items()
+                                                                if k == "min_modulation"})
+        t2 = time.perf_counter()
+        result = fastscan.scan_baseband(baseband, levels, self.spec, self.stripe_geometry(),
+                                        self.calibration.camera.shape, **options)
+        valid = self._filtered(result.proj_map, result.valid, self.spec.orientation, carriers.window)
+        if valid is not result.valid:
+            proj_map, stripe = _finish(result.points, valid, result.proj_map, result.stripe)
+            result = dataclasses.replace(result, valid=valid, proj_map=proj_map, stripe=stripe)
+        t3 = time.perf_counter()
+        # the stripes and the points come from one pass: "triangulate" times it, with the filters
+        result.timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
+        return result, baseband, carriers
 
     def _scan_sequence(self, frames: ArrayLike) -> tuple[ScanResult, ScanStages]:
         """`scan_stages` of a multi-frame capture: decode every coded direction, triangulate one."""

@@ -389,6 +389,38 @@ class Triangulator:
         the `other` projector coordinate, for an exact projector undistortion); as `triangulate`."""
         return self._evaluate(proj_map, valid, other, None)[0]
 
+    @property
+    def row_affine(self) -> bool:
+        """Whether every camera row's points are ratios of functions affine in ``x`` (a pinhole
+        camera and projector: `line_table` applies)."""
+        return self._coef.shape[0] == 0 and self._lens is None
+
+    def line_table(self, values: ArrayLike) -> NDArray[np.float64]:
+        """For every camera row ``y`` and projector coordinate ``values[k]`` ``(K,)``, the point
+        of each pixel ``x`` of the row as a ratio of affine functions of ``x``::
+
+            P_j(x) = (t[y, k, j] + t[y, k, 3 + j] x) / (t[y, k, 6] + t[y, k, 7] x),   j = 0, 1, 2
+
+        ``(H, K, 8)`` float64 (mm).  For a pattern of stripes the projector coordinate takes a
+        few values only, so a compiled loop triangulates a pixel with 4 multiply-adds and one
+        division (`sliscan.fastscan`).  The points equal `__call__`'s to float32 rounding.
+
+        Raises
+        ------
+        InputError
+            If the rig has lens distortion (`row_affine` is false).
+        """
+        if not self.row_affine:
+            raise InputError("a rig with lens distortion has no per-row triangulation table: its rows are not lines")
+        q = np.asarray(values, dtype=np.float64)[None, :, None] - self._centre
+        at0, slope = self._affine[:, None, 0, :], self._affine[:, None, 1, :]  # (H, 1, 8): A + B x, unscaled
+        table = np.empty((self.shape[0], q.shape[1], 8))
+        for part, terms in ((0, at0), (3, slope)):
+            table[..., part:part + 3] = terms[..., 0:3] + terms[..., 3:6] * q
+        table[..., 6:7] = at0[..., 6:7] + at0[..., 7:8] * q
+        table[..., 7:8] = slope[..., 6:7] + slope[..., 7:8] * q
+        return table
+
     def measure(self, proj_map: ArrayLike, valid: ArrayLike | None, test: MeasurableTest, *,
                 other: ArrayLike | None = None) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """`__call__` and `sliscan.pipeline.measurable` in one pass: the world points ``(H, W, 3)``

@@ -1,0 +1,289 @@
+"""The real-time single-shot scan: baseband envelopes to points in one compiled pass (issue 6).
+
+`Scanner(method="baseband")` (``sliscan scan --method baseband``).  The capture is demodulated
+at baseband (`sliscan.baseband`: one transform per line, each envelope sampled every ~20
+pixels), the frame's levels are read from those samples as `sliscan.decode.decode` reads them
+from full-size envelopes (`decode.FrameLevels`), and then one compiled loop over the pixels
+interpolates each pixel's DC and envelopes, decides its bits and stripe with `decode`'s
+per-pixel rules, and triangulates it.  The triangulation is a table: a stripe pattern's
+projector coordinate takes one value per stripe, so every camera row and stripe has its point
+as a ratio of two affine functions of the column (`Triangulator.line_table`), and the pixels
+where that point is a measurement (`sliscan.pipeline.measurable`) are one run of columns,
+found once per rig (`StripeGeometry`).
+
+What it leaves out, for speed: the window demodulator's edge handling (see `sliscan.baseband`),
+the decisions by order, the border refinement, the neighbours' agreement and the 3D filters
+(speckles, narrow runs); patterns with a phase channel are not supported (their stripes only
+unwrap the fringe), and the thesis's lit all-zero stripe, which needs the walk of
+`decode._zero_stripe`, stays undecoded.  Measured against the default (README, "Speed").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from sliscan._threads import over_rows
+from sliscan.baseband import Baseband
+from sliscan.decode import FrameLevels, _stripe_of_code, is_settled
+from sliscan.demodulate import Demodulated
+from sliscan.patterns import stripe_center
+from sliscan.reconstruct import MeasurableTest, Triangulator
+from sliscan.types import PatternSpec, ScanResult
+
+
+@dataclass(frozen=True, eq=False)
+class StripeGeometry:
+    """The triangulation of every camera row and stripe of one rig and pattern, prepared once.
+
+    Attributes
+    ----------
+    centres : (K,) float32 array
+        Each stripe's projector line (`sliscan.patterns.stripe_center`).
+    table : (H, K, 8) float64 array
+        `Triangulator.line_table` of the centres.
+    span : (H, K, 2) int64 array
+        First and last column whose point is a measurement (`Triangulator.measure` with the
+        rig's `MeasurableTest`); first > last where none is.
+    gaps : (H, K) int64 array
+        -1 where the measured columns are that one run, else the row of `gap_masks` that lists them.
+    gap_masks : (G, W) bool array
+    """
+
+    centres: NDArray[np.float32]
+    table: NDArray[np.float64]
+    span: NDArray[np.int64]
+    gaps: NDArray[np.int64]
+    gap_masks: NDArray[np.bool_]
+
+    @classmethod
+    def of(cls, triangulator: Triangulator, test: MeasurableTest, spec: PatternSpec) -> StripeGeometry:
+        """Measure every stripe's constant map once (``K`` calls of `Triangulator.measure`)."""
+        centres = stripe_center(np.arange(spec.stripes), spec).astype(np.float32)
+        h, w = triangulator.shape
+        span = np.empty((h, centres.size, 2), np.int64)
+        gaps = np.full((h, centres.size), -1, np.int64)
+        masks = []
+        for k, centre in enumerate(centres):
+            _, measured = triangulator.measure(np.full((h, w), centre, np.float32), None, test)
+            first = np.argmax(measured, axis=1)
+            last = w - 1 - np.argmax(measured[:, ::-1], axis=1)
+            count = measured.sum(axis=1)
+            span[:, k, 0], span[:, k, 1] = np.where(count > 0, first, w), np.where(count > 0, last, -1)
+            for y in np.flatnonzero((count > 0) & (count != last - first + 1)):
+                gaps[y, k] = len(masks)
+                masks.append(measured[y])
+        return cls(centres=centres, table=triangulator.line_table(centres), span=span, gaps=gaps,
+                   gap_masks=np.array(masks, dtype=bool).reshape(-1, w))
+
+
+@numba.njit(cache=True, inline="always")
+def _sample(samples: NDArray[np.float32], channel: int, line: int, low: int, high: int, t: np.float32) -> np.float32:
+    """Channel `channel` of `line` between samples `low` and `high`, `t` of the way to `high`
+    (as `Baseband.demodulated` interpolates)."""
+    return samples[channel, line, low] * (np.float32(1) - t) + samples[channel, line, high] * t
+
+
+@numba.njit(cache=True, inline="always")
+def _decide(samples: NDArray[np.float32], line: int, low: int, high: int, t: np.float32, floor: np.float32,
+            lit_off: NDArray[np.float32], lit_gain: NDArray[np.float32], pilot: int,
+            bit_off: NDArray[np.float32], bit_gain: NDArray[np.float32], min_modulation: np.float32,
+            half_confidence: np.float32) -> tuple[int, int, int, int, bool, np.float32]:
+    """`decode`'s per-pixel decision at a point of `line` between samples `low` and `high`:
+    ``(code, unclear, first_unclear, lit_mask, floored, least)``: the Gray code, the bits too
+    close to their threshold (a mask, bit 0 the most significant at the mask's top, and the
+    first of them), which lit carriers reach `min_modulation` (a mask; the pixel is lit when
+    any does; `decode.FrameLevels`: the pilot if there is one, else every bit), whether the DC
+    is at its floor, and the smallest bit margin.
+
+    The arithmetic is `decode`'s in float32 with reciprocals (`lit_gain`, `bit_gain`: one over
+    the scales' spans), so a level can differ from `decode`'s on the interpolated envelopes in
+    its last bits."""
+    raw = _sample(samples, 0, line, low, high, t)
+    inv_dc = np.float32(1) / max(raw, floor)
+    inv_ref, lit_mask = inv_dc, 0
+    if pilot >= 0:  # the pilot is the only lit carrier and the bits' reference
+        a = _sample(samples, 1 + pilot, line, low, high, t)
+        inv_ref = np.float32(1) / max(a, np.float32(1e-6))
+        lit_mask = 1 if (a * inv_dc - lit_off[0]) * lit_gain[0] >= min_modulation else 0
+    code, unclear, first_unclear = 0, 0, -1
+    least = np.float32(np.inf)
+    for n in range(bit_off.size):
+        a = _sample(samples, 1 + n, line, low, high, t)
+        if pilot < 0 and (a * inv_dc - lit_off[n]) * lit_gain[n] >= min_modulation:  # every bit is a lit carrier
+            lit_mask |= 1 << n
+        level = (a * inv_ref - bit_off[n]) * bit_gain[n]
+        code = (code << 1) | (1 if level >= 0.5 else 0)
+        margin = abs(level - np.float32(0.5))
+        least = min(least, margin)
+        unclear <<= 1
+        if not margin >= half_confidence:
+            unclear |= 1
+            if first_unclear < 0:
+                first_unclear = n
+    return code, unclear, first_unclear, lit_mask, raw < floor, least
+
+
+@numba.njit(cache=True, inline="always")
+def _confidence(least: float) -> np.float32:
+    """`decode`'s confidence of a smallest bit margin: twice it, clipped to [0, 1]."""
+    return np.float32(min(max(2 * least, 0.0), 1.0))
+
+
+@numba.njit(cache=True, inline="always")
+def _stripe(code: int, unclear: int, first_unclear: int, lit_mask: int, stripe_of_code: NDArray[np.int64],
+            stripe_borders: bool) -> int:
+    """The stripe `_decide`'s outputs decide (`decode`'s per-pixel rules), -1 for none."""
+    s = stripe_of_code[code]
+    count = 0 if unclear == 0 else (1 if unclear & (unclear - 1) == 0 else 2)
+    settled = is_settled(code, count, first_unclear, stripe_of_code, stripe_borders)
+    return s if lit_mask != 0 and s >= 0 and settled else -1
+
+
+@numba.njit(cache=True, inline="always")
+def _decide_pixel(samples: NDArray[np.float32], line: int, low: int, high: int, t: np.float32, floor: np.float32,
+                  lit_off: NDArray[np.float32], lit_gain: NDArray[np.float32],
+                  pilot: int, bit_off: NDArray[np.float32], bit_gain: NDArray[np.float32], min_modulation: np.float32,
+                  half_confidence: np.float32, stripe_of_code: NDArray[np.int64],
+                  stripe_borders: bool) -> tuple[int, np.float32]:
+    """One pixel's stripe (-1 for none) and confidence between samples `low` and `high`."""
+    code, unclear, first, lit_mask, _, least = _decide(samples, line, low, high, t, floor, lit_off,
+                                                       lit_gain, pilot, bit_off, bit_gain, min_modulation,
+                                                       half_confidence)
+    return (_stripe(code, unclear, first, lit_mask, stripe_of_code, stripe_borders),
+            _confidence(least) if lit_mask != 0 else np.float32(0))
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, floor: np.float32, inv_top: np.float32,
+                lit_off: NDArray[np.float32], lit_gain: NDArray[np.float32],
+                pilot: int, bit_off: NDArray[np.float32], bit_gain: NDArray[np.float32], min_modulation: np.float32,
+                half_confidence: np.float32, stripe_borders: bool, stripe_of_code: NDArray[np.int64],
+                centres: NDArray[np.float32], table: NDArray[np.float64], span: NDArray[np.int64],
+                gaps: NDArray[np.int64], gap_masks: NDArray[np.bool_], lines: NDArray[np.intp],
+                points: NDArray[np.float32], valid: NDArray[np.bool_], texture: NDArray[np.float32],
+                proj_map: NDArray[np.float32], stripe: NDArray[np.int16], confidence: NDArray[np.float32]) -> None:
+    """`scan_baseband`'s pixels of the given lines (camera rows, or columns if `transposed`),
+    every output written in place.
+
+    Each line's samples are decided first (`_decide`).  Between two samples every level is a
+    ratio of two functions linear in the position, so it moves monotonically from one
+    sample's value to the next: where both samples have the same DC floor state and either no
+    lit carrier or the same code, the same unclear bits and a lit carrier in common, every
+    pixel between them decides the same, and only its point is computed (its confidence is interpolated
+    between the samples'); the other pixels are decided on their own (`_decide_pixel`)."""
+    length, inv_step = samples.shape[2], 1.0 / step
+    width = valid.shape[0] if transposed else valid.shape[1]
+    codes, unclears, firsts, lits = np.empty((4, length), np.int64)
+    floored, leasts = np.empty(length, np.bool_), np.empty(length, np.float32)
+    segments = np.empty(length, np.int64)  # stripe of a uniform segment, -1 none, -2 mixed
+    starts = np.empty(length + 1, np.int64)  # the pixels between samples i and i + 1: starts[i] .. starts[i + 1] - 1
+    i = 0
+    for at in range(width):
+        while i <= int(at * inv_step):
+            starts[i], i = at, i + 1
+    starts[i:] = width
+    for line in lines:
+        for i in range(length):
+            codes[i], unclears[i], firsts[i], lits[i], floored[i], leasts[i] = _decide(
+                samples, line, i, i, np.float32(0), floor, lit_off, lit_gain, pilot, bit_off, bit_gain,
+                min_modulation, half_confidence)
+        for i in range(length):
+            j = i + 1 if i + 1 < length else 0
+            if lits[i] == lits[j] == 0 and floored[i] == floored[j]:
+                segments[i] = -1  # unlit throughout, whatever the code
+            elif (codes[i] == codes[j] and unclears[i] == unclears[j] and floored[i] == floored[j]
+                  and (lits[i] & lits[j]) != 0):
+                segments[i] = _stripe(codes[i], unclears[i], firsts[i], lits[i], stripe_of_code, stripe_borders)
+            else:
+                segments[i] = -2
+        for i in range(length):
+            high, s = i + 1 if i + 1 < length else 0, segments[i]
+            for at in range(starts[i], starts[i + 1]):
+                y, x = (at, line) if transposed else (line, at)
+                t = np.float32(at * inv_step - i)
+                texture[y, x] = min(max(_sample(samples, 0, line, i, high, t) * inv_top, np.float32(0)), np.float32(1))
+                p = s
+                if s == -2:
+                    p, confidence[y, x] = _decide_pixel(samples, line, i, high, t, floor, lit_off, lit_gain, pilot,
+                                                        bit_off, bit_gain, min_modulation, half_confidence,
+                                                        stripe_of_code, stripe_borders)
+                else:
+                    confidence[y, x] = _confidence(leasts[i] * (1 - t) + leasts[high] * t) if lits[i] else 0
+                ok = p >= 0
+                if ok:
+                    g = gaps[y, p]
+                    ok = gap_masks[g, x] if g >= 0 else span[y, p, 0] <= x <= span[y, p, 1]
+                if ok:
+                    inv = 1.0 / (table[y, p, 6] + table[y, p, 7] * x)
+                    for k in range(3):
+                        points[y, x, k] = np.float32((table[y, p, k] + table[y, p, 3 + k] * x) * inv)
+                    proj_map[y, x], stripe[y, x] = centres[p], p
+                else:
+                    points[y, x, 0] = points[y, x, 1] = points[y, x, 2] = np.nan
+                    proj_map[y, x], stripe[y, x] = np.nan, -1
+                valid[y, x] = ok
+
+
+#: Samples each of `frame_levels`' two-means clusterings reads at most (`decode._Scale.of`):
+#: a regular grid of them (the whole frame's samples at 1280x1024, a third at 5 MP).
+LEVEL_SAMPLES = 50_000
+
+
+def frame_levels(baseband: Baseband, spec: PatternSpec, *, min_modulation: float = 0.3) -> FrameLevels:
+    """`decode.FrameLevels` of the baseband samples (a frame ``(H, L)`` of them; there is no
+    noise estimate, so no noise test)."""
+    samples = baseband.samples
+    return FrameLevels.of(Demodulated(amplitude=samples[1:], dc=samples[0], residual=np.zeros_like(samples[0])), spec,
+                          min_modulation=min_modulation, min_snr=0.0, limit=LEVEL_SAMPLES)
+
+
+def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, geometry: StripeGeometry,
+                  shape: tuple[int, int], *, min_modulation: float = 0.3, min_confidence: float = 0.1,
+                  stripe_borders: bool = True, workers: int | None = None) -> ScanResult:
+    """Points of one frame from its baseband envelopes (see the module docstring).
+
+    Parameters
+    ----------
+    baseband : Baseband
+        `sliscan.baseband.demodulate_baseband` of the capture in its carrier orientation.
+    levels : FrameLevels
+        `frame_levels` of it, with the same `min_modulation`.
+    spec : PatternSpec
+        A stripe pattern (no phase channel).
+    geometry : StripeGeometry
+        Of the rig and `spec`.
+    shape : (H, W)
+        The camera's.
+    min_modulation, min_confidence, stripe_borders
+        As in `sliscan.decode.decode` (its per-pixel tests; there is no noise or residual
+        estimate to test against).
+    workers : int, optional
+        Threads over the camera rows.
+
+    Returns
+    -------
+    ScanResult
+        Without timings.
+    """
+    samples = baseband.samples
+    top = max(float(np.percentile(samples[0], 99.5)), 1e-6)
+    h, w = shape
+    points = np.empty((h, w, 3), np.float32)
+    valid = np.empty((h, w), bool)
+    texture, proj_map, confidence = (np.empty((h, w), np.float32) for _ in range(3))
+    stripe = np.empty((h, w), np.int16)
+    pilot = spec.pilot_index if spec.pilot is not None else -1
+    transposed = spec.orientation == "columns"
+    over_rows(lambda lines: _scan_lines(
+        samples, baseband.step, transposed, np.float32(levels.floor), np.float32(1 / top),
+        levels.lit_scale.off, (1 / levels.lit_scale.span).astype(np.float32), pilot,
+        levels.bits.off, (1 / levels.bits.span).astype(np.float32),
+        np.float32(min_modulation), np.float32(0.5 * min_confidence), stripe_borders, _stripe_of_code(spec),
+        geometry.centres, geometry.table, geometry.span, geometry.gaps, geometry.gap_masks, lines, points, valid,
+        texture, proj_map, stripe, confidence), w if transposed else h, workers)
+    return ScanResult(points=points, valid=valid, texture=texture, proj_map=proj_map, stripe=stripe,
+                      confidence=confidence)
