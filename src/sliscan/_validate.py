@@ -66,8 +66,10 @@ def check_finite_matrix(name: str, value: object, shape: tuple[int, ...]) -> NDA
     return arr
 
 
-def check_image(name: str, image: object, *, shape: tuple[int, int] | None = None) -> NDArray[np.float32]:
-    """A 2-D image as float32 in [0, 1] (uint8 / uint16 are scaled), never the caller's array.
+def check_image(name: str, image: object, *, shape: tuple[int, int] | None = None,
+                copy: bool = True) -> NDArray[np.float32]:
+    """A 2-D image as float32 in [0, 1] (uint8 / uint16 are scaled), never the caller's array
+    unless `copy` is false and it is float32 already (for a caller that only reads it).
 
     Parameters
     ----------
@@ -77,6 +79,8 @@ def check_image(name: str, image: object, *, shape: tuple[int, int] | None = Non
         uint8, uint16, bool or float (floats are taken as already in [0, 1]).
     shape : (H, W), optional
         Required shape.
+    copy : bool
+        False: return a float32 `image` itself (checked) instead of a copy.
     """
     arr = np.asarray(image)
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
@@ -85,15 +89,13 @@ def check_image(name: str, image: object, *, shape: tuple[int, int] | None = Non
         raise InputError(f"{name} must be a 2-D (H, W) image, got shape {arr.shape}")
     if shape is not None and arr.shape != tuple(shape):
         raise InputError(f"{name} must have shape {tuple(shape)} (H, W), got {arr.shape}")
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float32) / np.float32(255)
-    if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / np.float32(65535)
+    if arr.dtype in (np.uint8, np.uint16):  # one pass, the values of astype then divide
+        return np.divide(arr, np.float32(np.iinfo(arr.dtype).max), dtype=np.float32)
     if arr.dtype == np.bool_:
         return arr.astype(np.float32)
     if not np.issubdtype(arr.dtype, np.floating):
         raise InputError(f"{name} must be uint8, uint16 or float, got {arr.dtype}")
-    out = arr.astype(np.float32, copy=True)
+    out = arr.astype(np.float32, copy=copy)
     if not np.all(np.isfinite(out)):
         raise InputError(f"{name} has non-finite pixels (NaN or inf)")
     return out

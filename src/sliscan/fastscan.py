@@ -202,7 +202,33 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
                 segments[i] = -2
         for i in range(length):
             high, s = i + 1 if i + 1 < length else 0, segments[i]
-            for at in range(starts[i], starts[i + 1]):
+            start, stop = starts[i], starts[i + 1]
+            if s != -2 and not transposed and (s < 0 or gaps[line, s] < 0):
+                # one decision and one run of measured columns: straight loops, coefficients read once
+                y, d0, d1, c0, c1, lit = line, samples[0, line, i], samples[0, line, high], leasts[i], leasts[high], lits[i]
+                for x in range(start, stop):
+                    t = np.float32(x * inv_step - i)
+                    texture[y, x] = min(max((d0 * (np.float32(1) - t) + d1 * t) * inv_top, np.float32(0)),
+                                        np.float32(1))
+                    confidence[y, x] = _confidence(c0 * (np.float32(1) - t) + c1 * t) if lit else np.float32(0)
+                first, end = stop, stop
+                if s >= 0:
+                    first, end = max(start, span[y, s, 0]), min(stop, span[y, s, 1] + 1)
+                    a0, a1, a2, b0, b1, b2 = (table[y, s, 0], table[y, s, 1], table[y, s, 2], table[y, s, 3],
+                                              table[y, s, 4], table[y, s, 5])
+                    e0, e1, centre = table[y, s, 6], table[y, s, 7], centres[s]
+                    for x in range(first, end):
+                        inv = 1.0 / (e0 + e1 * x)
+                        points[y, x, 0] = np.float32((a0 + b0 * x) * inv)
+                        points[y, x, 1] = np.float32((a1 + b1 * x) * inv)
+                        points[y, x, 2] = np.float32((a2 + b2 * x) * inv)
+                        proj_map[y, x], stripe[y, x], valid[y, x] = centre, s, True
+                for x in range(start, stop):
+                    if not first <= x < end:
+                        points[y, x, 0] = points[y, x, 1] = points[y, x, 2] = np.nan
+                        proj_map[y, x], stripe[y, x], valid[y, x] = np.nan, -1, False
+                continue
+            for at in range(start, stop):
                 y, x = (at, line) if transposed else (line, at)
                 t = np.float32(at * inv_step - i)
                 texture[y, x] = min(max(_sample(samples, 0, line, i, high, t) * inv_top, np.float32(0)), np.float32(1))
@@ -229,8 +255,8 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
 
 
 #: Samples each of `frame_levels`' two-means clusterings reads at most (`decode._Scale.of`):
-#: a regular grid of them (the whole frame's samples at 1280x1024, a third at 5 MP).
-LEVEL_SAMPLES = 50_000
+#: a regular grid of them (every 2nd or 3rd sample in both directions at 1280x1024 and 5 MP).
+LEVEL_SAMPLES = 20_000
 
 
 def frame_levels(baseband: Baseband, spec: PatternSpec, *, min_modulation: float = 0.3) -> FrameLevels:

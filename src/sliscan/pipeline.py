@@ -281,7 +281,7 @@ class Scanner:
     def demodulate_baseband(self, image: ArrayLike) -> tuple[Baseband, Carriers]:
         """`sliscan.baseband.demodulate_baseband` of one frame (checked against the camera size
         and its exposure), with the plan of its carriers (kept while they stay the same)."""
-        img = check_image("capture", image, shape=self.calibration.camera.shape)
+        img = check_image("capture", image, shape=self.calibration.camera.shape, copy=False)  # only read
         check_exposure(img)
         carriers = self._known_carriers() or detect_carriers(img, self.spec)
         self._keep_carriers(carriers)
