@@ -248,13 +248,17 @@ def render_cached(folder: str | None, key: str, render) -> simulate.Capture:
     return capture
 
 
+#: How the tables name each `Scanner` method.
+DECODER_NAMES = {"window": "sliscan window", "bandpass": "thesis band-pass", "baseband": "baseband (real time)"}
+
+
 def markdown_table(rows: list[dict]) -> str:
     """The rows as the README's Markdown table."""
     lines = ["| pattern | decoder | scene | albedo | stripe accuracy | off > 1 stripe | completeness | outliers "
              "| gross outliers | RMS (mm) | median (mm) | oracle median (mm) | scan (s) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        decoder = "sliscan window" if r["decoder"] == "window" else "thesis band-pass"
+        decoder = DECODER_NAMES.get(r["decoder"], r["decoder"])
         lines.append(f"| {r['pattern']} | {decoder} | {r['scene']} | {r['albedo']} | {100 * r['stripe_accuracy']:.1f} % "
                      f"| {100 * r['far_stripe']:.2f} % | {100 * r['completeness']:.1f} % | {100 * r['outliers']:.2f} % | {100 * r['gross_outliers']:.3f} % "
                      f"| {r['rms_mm']:.1f} "

@@ -5,7 +5,7 @@ so it needs only the part of the line's spectrum within about one spacing of the
 Each line is Fourier transformed once (`scipy.fft.rfft`); per carrier the bins around it are
 weighted by a window's transfer function, shifted to zero frequency and inverse transformed
 at a short length ``L`` (a few times the band's width instead of the line's ``W`` pixels):
-the envelope sampled every ``W / L`` pixels (about 20 at 5 MP), the decimated signal of issue
+the envelope sampled every ``W / L`` pixels (27 at 5 MP), the decimated signal of issue
 6.  The DC is the same low-pass around frequency 0.
 
 The window is a triangle two spacing periods long (``sinc**2``: zero on every other carrier

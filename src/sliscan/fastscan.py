@@ -1,7 +1,7 @@
 """The real-time single-shot scan: baseband envelopes to points in one compiled pass (issue 6).
 
 `Scanner(method="baseband")` (``sliscan scan --method baseband``).  The capture is demodulated
-at baseband (`sliscan.baseband`: one transform per line, each envelope sampled every ~20
+at baseband (`sliscan.baseband`: one transform per line, each envelope sampled every ~27
 pixels), the frame's levels are read from those samples as `sliscan.decode.decode` reads them
 from full-size envelopes (`decode.FrameLevels`), and then one compiled loop over the pixels
 interpolates each pixel's DC and envelopes, decides its bits and stripe with `decode`'s
