@@ -128,6 +128,19 @@ def test_the_fast_scan_decodes_the_realistic_sphere(sphere_scan):
     assert set(result.timings) == {"demodulate", "decode", "triangulate", "total"}
 
 
+def test_the_fast_scans_stages_are_its_envelopes_and_decodes_per_pixel_decisions(sphere_scan):
+    """`scan_stages` (for a report) gives the same scan, the envelopes interpolated to every
+    pixel in camera orientation, and `decode`'s per-pixel decisions on them (no order, no border
+    refinement, no neighbours' vote), which the pass reproduces but for its own frame levels."""
+    rig, spec, capture, scanner, result = sphere_scan
+    again, stages = scanner.scan_stages(capture.image)
+    np.testing.assert_array_equal(again.valid, result.valid)
+    assert stages.demodulated.amplitude.shape == (spec.bits, *capture.image.shape)
+    assert stages.carriers is not None and stages.direction == spec.orientation
+    decided = stages.decoded.valid & result.valid
+    assert (stages.decoded.stripe[decided] == result.stripe[decided]).mean() > 0.99
+
+
 def test_the_fast_scan_refuses_what_it_cannot_do(small_rig):
     with pytest.raises(InputError, match="phase channel"):
         Scanner(patterns.phase_spec((1024, 768)), small_rig.calibration, method="baseband")

@@ -118,15 +118,15 @@ def baseline_direction(calibration: Calibration) -> str:
     return "rows" if abs(offset[1]) >= abs(offset[0]) else "columns"
 
 
+#: `Scanner` methods (`sliscan scan --method`): the demodulators of `sliscan.demodulate` and the
+#: real-time path of `sliscan.fastscan`.
+METHODS = ("window", "bandpass", "baseband")
+
 #: How a single-shot pattern's stripes are decided (`sliscan scan --decisions`): the
 #: `decode.decode` options of each choice.  ``auto``: by order for sliscan's patterns, per pixel
 #: for the thesis's (`decode.decode`'s ``order=None``); ``order``: down each column as a whole
 #: (`sliscan.stripe_order`), the more complete and about 2-3x slower decoding; ``pixel``: each
 #: pixel from its own bits, the faster one.
-#: `Scanner` methods (`sliscan scan --method`): the demodulators of `sliscan.demodulate` and the
-#: real-time path of `sliscan.fastscan`.
-METHODS = ("window", "bandpass", "baseband")
-
 DECISIONS: dict[str, dict[str, Any]] = {"auto": {}, "order": {"order": True}, "pixel": {"order": False}}
 
 
@@ -261,15 +261,19 @@ class Scanner:
         interpolated to every pixel (`Baseband.demodulated`)."""
         if self.method == "baseband":
             baseband, carriers = self.demodulate_baseband(image)
-            demod = baseband.demodulated(self.calibration.camera.shape[1 if self.spec.orientation == "rows" else 0])
-            if self.spec.orientation == "columns":
-                demod = Demodulated(*(np.ascontiguousarray(np.swapaxes(a, -1, -2)) for a in
-                                      (demod.amplitude, demod.dc, demod.residual)))
-            return demod, carriers
+            return self._interpolated(baseband), carriers
         img = check_image("capture", image, shape=self.calibration.camera.shape)
         demod, found = demodulate(img, self.spec, method=self.method, carriers=self._known_carriers())
         self._keep_carriers(found)
         return demod, found
+
+    def _interpolated(self, baseband: Baseband) -> Demodulated:
+        """`Baseband.demodulated` at every camera pixel, in camera orientation."""
+        demod = baseband.demodulated(self.calibration.camera.shape[1 if self.spec.orientation == "rows" else 0])
+        if self.spec.orientation == "rows":
+            return demod
+        return Demodulated(*(np.ascontiguousarray(np.swapaxes(a, -1, -2)) for a in
+                             (demod.amplitude, demod.dc, demod.residual)))
 
     def _known_carriers(self) -> Carriers | None:
         return self._carriers if self.reuse_carriers else None
@@ -334,7 +338,7 @@ class Scanner:
             return self._scan_sequence(image)
         if self.method == "baseband":
             result, baseband, carriers = self._scan_baseband(image)
-            demod = self.demodulate(image)[0]
+            demod = self._interpolated(baseband)
             options = dict(self.decode_options, order=False, border_reach=0, neighbour_radius=0)
             return result, ScanStages(self.spec.orientation, demodulated=demod, carriers=carriers,
                                       decoded=decode(demod, self.spec, **options))
