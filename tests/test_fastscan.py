@@ -81,7 +81,8 @@ def reference_stripes(baseband, levels, spec, width):
     lookup = code_to_stripe(np.arange(1 << spec.bits), spec)
     stripe = lookup[code]
     flipped = lookup[code ^ (unclear * weights).sum(axis=0)]
-    settled = (unclear.sum(axis=0) == 0) | ((unclear.sum(axis=0) == 1) & (flipped >= 0) & (np.abs(flipped - stripe) == 1))
+    count = unclear.sum(axis=0)
+    settled = (count == 0) | ((count == 1) & (flipped >= 0) & (np.abs(flipped - stripe) == 1))
     return np.where(lit & settled & (stripe >= 0), stripe, -1), lit
 
 

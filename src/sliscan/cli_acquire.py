@@ -465,7 +465,7 @@ Examples:
 @click.option("--calibration", type=INPUT_FILE, required=True, help="Calibration JSON of the rig (and virtual: the rig).")
 @_device_options
 @click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
-              help="Demodulator (as sliscan scan; baseband: the real-time path).")
+              help="Demodulator (as sliscan scan; baseband: the real-time path, carriers of the first frame kept).")
 @_decisions_option
 @click.option("--frames", type=click.IntRange(min=1), help="Stop after this many frames.")
 @click.option("--seconds", type=POSITIVE, help="Stop after this many seconds.")
@@ -516,7 +516,9 @@ def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str,
         if devs.camera.size != calib.camera.size:
             (w, h), (cw, ch) = devs.camera.size, calib.camera.size
             raise InputError(f"camera {camera_id} gives {w}x{h} frames but the camera of {calibration} is {cw}x{ch}")
-        scanner = Scanner(spec, calib, method=method, decode_options=decision_options(spec, decisions))
+        # the real-time path keeps the first frame's carriers (the search costs 57 ms at 5 MP)
+        scanner = Scanner(spec, calib, method=method, decode_options=decision_options(spec, decisions),
+                          reuse_carriers=method == "baseband")
         started = datetime.now(timezone.utc).isoformat(timespec="seconds")
         preview = devices.PreviewWindow(devs.camera.size) if window else None
         try:

@@ -205,7 +205,8 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
             start, stop = starts[i], starts[i + 1]
             if s != -2 and not transposed and (s < 0 or gaps[line, s] < 0):
                 # one decision and one run of measured columns: straight loops, coefficients read once
-                y, d0, d1, c0, c1, lit = line, samples[0, line, i], samples[0, line, high], leasts[i], leasts[high], lits[i]
+                y, lit = line, lits[i]
+                d0, d1, c0, c1 = samples[0, y, i], samples[0, y, high], leasts[i], leasts[high]
                 for x in range(start, stop):
                     t = np.float32(x * inv_step - i)
                     texture[y, x] = min(max((d0 * (np.float32(1) - t) + d1 * t) * inv_top, np.float32(0)),
