@@ -1,5 +1,7 @@
 """The real-time path: baseband demodulation (`sliscan.baseband`) and the fused scan (`sliscan.fastscan`)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -140,6 +142,32 @@ def test_the_fast_scans_stages_are_its_envelopes_and_decodes_per_pixel_decisions
     assert stages.carriers is not None and stages.direction == spec.orientation
     decided = stages.decoded.valid & result.valid
     assert (stages.decoded.stripe[decided] == result.stripe[decided]).mean() > 0.99
+
+
+def test_a_scan_into_an_earlier_result_overwrites_its_arrays_with_the_same_scan(sphere_scan):
+    """`Scanner.scan(out=...)` returns the earlier result's arrays holding exactly what a fresh
+    scan gives, with the 3D filters on too (they finish the outputs in place), whatever the
+    arrays held before; an array of the wrong shape or dtype is refused by name, and so is `out`
+    for another method."""
+    rig, spec, capture, scanner, result = sphere_scan
+    for filtered in (False, True):
+        fresh = Scanner(spec, rig.calibration, method="baseband", remove_speckles=filtered,
+                        remove_narrow_runs=filtered).scan(capture.image)
+        earlier = Scanner(spec, rig.calibration, method="baseband").scan(capture.image[::-1].copy())
+        kept = {name: getattr(earlier, name) for name in ("points", "valid", "texture", "proj_map", "stripe",
+                                                          "confidence")}
+        again = Scanner(spec, rig.calibration, method="baseband", remove_speckles=filtered,
+                        remove_narrow_runs=filtered).scan(capture.image, out=earlier)
+        assert filtered or np.array_equal(fresh.valid, result.valid)
+        for name, array in kept.items():
+            assert getattr(again, name) is array
+            np.testing.assert_array_equal(array, getattr(fresh, name), err_msg=name)
+        assert set(again.timings) == {"demodulate", "decode", "triangulate", "total"}
+    wrong = dataclasses.replace(result, stripe=result.stripe.astype(np.int32))
+    with pytest.raises(InputError, match="out.stripe is int32"):
+        scanner.scan(capture.image, out=wrong)
+    with pytest.raises(InputError, match="out= needs method 'baseband'"):
+        Scanner(spec, rig.calibration).scan(capture.image, out=result)
 
 
 def test_the_fast_scan_refuses_what_it_cannot_do(small_rig):

@@ -1,14 +1,18 @@
 """Threads for the compiled per-pixel kernels: how many, and how rows are shared among them.
 
 The kernels (`numba.njit(nogil=True)`) release the GIL, so plain threads run them in parallel
-over blocks of image rows; each kernel writes only its own rows of preallocated outputs.
+over blocks of image rows; each kernel writes only its own rows of preallocated outputs.  The
+threads are started once per worker count and kept (`pool`): starting two threads costs
+0.1-1 ms, as much as a small kernel, and a real-time scan runs a dozen of them per frame.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+from typing import Callable, Iterable, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +20,11 @@ from numpy.typing import NDArray
 #: Environment variable capping the threads of the parallel stages (set by `sliscan.batch` in
 #: each worker process, so that worker processes sharing a machine do not oversubscribe it).
 THREADS_ENV = "SLISCAN_THREADS"
+
+_PREFIX = "sliscan-worker"
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 def available_cpus() -> int:
@@ -30,6 +39,26 @@ def default_workers() -> int:
     return int(cap) if cap.isdigit() and int(cap) > 0 else available_cpus()
 
 
+@functools.lru_cache(maxsize=None)
+def pool(workers: int) -> ThreadPoolExecutor:
+    """The process's pool of `workers` threads, started on first use and kept."""
+    return ThreadPoolExecutor(workers, thread_name_prefix=_PREFIX)
+
+
+if hasattr(os, "register_at_fork"):  # a forked child has the pools but not their threads
+    os.register_at_fork(after_in_child=pool.cache_clear)
+
+
+def in_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None) -> list[R]:
+    """``[fn(item) for item in items]``, the calls shared among `workers` threads of `pool`
+    (default `default_workers`); in this thread when there is one worker or when this thread
+    is itself one of a pool's (a task waiting on its own pool could wait forever)."""
+    workers = default_workers() if workers is None else workers
+    if workers <= 1 or threading.current_thread().name.startswith(_PREFIX):
+        return [fn(item) for item in items]
+    return list(pool(workers).map(fn, items))
+
+
 def over_rows(kernel: Callable[[NDArray[np.intp]], object], height: int, workers: int | None = None) -> None:
     """Run ``kernel(rows)`` on blocks of the row indices ``0 .. height - 1``, in parallel.
 
@@ -40,5 +69,4 @@ def over_rows(kernel: Callable[[NDArray[np.intp]], object], height: int, workers
     if workers <= 1:
         kernel(np.arange(height))
         return
-    with ThreadPoolExecutor(workers) as pool:
-        list(pool.map(kernel, np.array_split(np.arange(height), 4 * workers)))
+    in_parallel(kernel, np.array_split(np.arange(height), 4 * workers), workers)

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
+from sliscan._validate import InputError
 from sliscan.baseband import Baseband
 from sliscan.decode import FrameLevels, _stripe_of_code, is_settled
 from sliscan.demodulate import Demodulated
@@ -255,9 +256,12 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
                 valid[y, x] = ok
 
 
-#: Samples each of `frame_levels`' two-means clusterings reads at most (`decode._Scale.of`):
-#: a regular grid of them (every 2nd or 3rd sample in both directions at 1280x1024 and 5 MP).
-LEVEL_SAMPLES = 20_000
+#: About how many samples each of `frame_levels`' two-means clusterings reads (between this
+#: and 4 times it: `decode._Scale.of`'s regular grid, every 2nd sample in both directions at
+#: 1280x1024, every 5th at 5 MP).  A cluster's median from ~2500 samples is off by well under
+#: 1 % of the off-on span, against a decision margin (`min_confidence`) of 5 %; 20k samples
+#: cost 3x the time (8.7 against 3.5 ms per frame at 1280x1024).
+LEVEL_SAMPLES = 5_000
 
 
 def frame_levels(baseband: Baseband, spec: PatternSpec, *, min_modulation: float = 0.3) -> FrameLevels:
@@ -270,7 +274,7 @@ def frame_levels(baseband: Baseband, spec: PatternSpec, *, min_modulation: float
 
 def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, geometry: StripeGeometry,
                   shape: tuple[int, int], *, min_modulation: float = 0.3, min_confidence: float = 0.1,
-                  stripe_borders: bool = True, workers: int | None = None) -> ScanResult:
+                  stripe_borders: bool = True, workers: int | None = None, out: ScanResult | None = None) -> ScanResult:
     """Points of one frame from its baseband envelopes (see the module docstring).
 
     Parameters
@@ -290,19 +294,18 @@ def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, ge
         estimate to test against).
     workers : int, optional
         Threads over the camera rows.
+    out : ScanResult, optional
+        Whose arrays to overwrite (`outputs`).
 
     Returns
     -------
     ScanResult
-        Without timings.
+        Without timings: `out`'s arrays if given, else new ones.
     """
     samples = baseband.samples
     top = max(float(np.percentile(samples[0], 99.5)), 1e-6)
     h, w = shape
-    points = np.empty((h, w, 3), np.float32)
-    valid = np.empty((h, w), bool)
-    texture, proj_map, confidence = (np.empty((h, w), np.float32) for _ in range(3))
-    stripe = np.empty((h, w), np.int16)
+    points, valid, texture, proj_map, stripe, confidence = outputs(shape, out)
     pilot = spec.pilot_index if spec.pilot is not None else -1
     transposed = spec.orientation == "columns"
     over_rows(lambda lines: _scan_lines(
@@ -314,3 +317,26 @@ def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, ge
         texture, proj_map, stripe, confidence), w if transposed else h, workers)
     return ScanResult(points=points, valid=valid, texture=texture, proj_map=proj_map, stripe=stripe,
                       confidence=confidence)
+
+
+def outputs(shape: tuple[int, int], out: ScanResult | None = None) -> tuple[NDArray, ...]:
+    """A scan's arrays for a camera of `shape` ``(H, W)``, in `ScanResult` field order: new
+    (uninitialised) ones, or `out`'s after checking that each has the shape, dtype and C order
+    `scan_baseband` writes.
+
+    Raises
+    ------
+    InputError
+        If `out` does not fit, naming the first array that does not.
+    """
+    h, w = shape
+    layout = {"points": ((h, w, 3), np.float32), "valid": ((h, w), np.bool_), "texture": ((h, w), np.float32),
+              "proj_map": ((h, w), np.float32), "stripe": ((h, w), np.int16), "confidence": ((h, w), np.float32)}
+    if out is None:
+        return tuple(np.empty(size, dtype) for size, dtype in layout.values())
+    for name, (size, dtype) in layout.items():
+        array = getattr(out, name)
+        if array.shape != size or array.dtype != dtype or not array.flags.c_contiguous or not array.flags.writeable:
+            raise InputError(f"out.{name} is {array.dtype} {array.shape}, not a writeable C-ordered {np.dtype(dtype)} "
+                             f"{size} array: out= takes an earlier scan's result of this camera")
+    return tuple(getattr(out, name) for name in layout)

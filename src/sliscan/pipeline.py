@@ -8,7 +8,6 @@ pattern (``pmp``, ``graycode``) goes the same way from a whole capture sequence:
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -95,11 +94,15 @@ def _finish_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], proj_map
 
 
 def _finish(points: NDArray[np.float32], valid: NDArray[np.bool_], proj_map: NDArray[np.floating],
-            index: NDArray[np.integer]) -> tuple[NDArray[np.float32], NDArray[np.int16]]:
+            index: NDArray[np.integer], *, in_place: bool = False) -> tuple[NDArray[np.float32], NDArray[np.int16]]:
     """A scan's outputs, restricted to `valid` ``(H, W)``: sets `points` ``(H, W, 3)`` to NaN
     outside it, and returns `proj_map` ``(H, W)`` as float32 (NaN outside) and the stripe or
-    fringe `index` ``(H, W)`` as int16 (-1 outside)."""
-    proj_out, index_out = np.empty(valid.shape, np.float32), np.empty(valid.shape, np.int16)
+    fringe `index` ``(H, W)`` as int16 (-1 outside): new arrays, or with `in_place` the given
+    ones (which must then be float32 and int16)."""
+    if in_place:
+        proj_out, index_out = proj_map, index
+    else:
+        proj_out, index_out = np.empty(valid.shape, np.float32), np.empty(valid.shape, np.int16)
     over_rows(lambda rows: _finish_rows(points, valid, proj_map, index, rows, proj_out, index_out), valid.shape[0])
     return proj_out, index_out
 
@@ -302,7 +305,7 @@ class Scanner:
                                                         self.spec)
         return self._geometry
 
-    def scan(self, image: ArrayLike) -> ScanResult:
+    def scan(self, image: ArrayLike, out: ScanResult | None = None) -> ScanResult:
         """Point cloud of one camera frame of the composite pattern, or of one capture sequence
         of a multi-frame pattern.
 
@@ -311,6 +314,11 @@ class Scanner:
         image : (H, W) array, or for ``pmp`` / ``graycode`` ``spec.frame_count`` of them
             uint8, uint16 or float in [0, 1], of the calibrated camera's size, frames in the
             spec's order (a sequence or a ``(K, H, W)`` array); not modified.
+        out : ScanResult, optional
+            Method ``baseband`` only: an earlier result of this camera size whose arrays this
+            scan overwrites (and returns, with its own timings), as a frame-after-frame loop
+            does once it is done with a frame.  New memory costs its first write: at 5 MP the
+            ~135 MB of outputs take ~20 ms more to fill fresh than reused (README, "Speed").
 
         Returns
         -------
@@ -322,10 +330,14 @@ class Scanner:
         Raises
         ------
         InputError
-            If a frame is not of the camera's size, or a sequence has the wrong number of frames.
+            If a frame is not of the camera's size, or a sequence has the wrong number of frames,
+            or `out` is given to another method or does not fit.
         """
         if self.method == "baseband" and self.spec.kind not in MULTI_FRAME_KINDS:
-            return self._scan_baseband(image)[0]
+            return self._scan_baseband(image, out)[0]
+        if out is not None:
+            raise InputError(f"out= needs method 'baseband' and a single-frame pattern, not {self.method!r} "
+                             f"with a {self.spec.kind!r} pattern")
         return self.scan_stages(image)[0]
 
     def scan_stages(self, image: ArrayLike) -> tuple[ScanResult, ScanStages]:
@@ -405,9 +417,9 @@ class Scanner:
             valid = despeckle(narrowed) if (narrowed != valid).any() else valid
         return valid
 
-    def _scan_baseband(self, image: ArrayLike) -> tuple[ScanResult, Baseband, Carriers]:
-        """`scan` with method ``baseband`` (`sliscan.fastscan`), then the 3D filters that are on;
-        also the baseband envelopes and the carriers."""
+    def _scan_baseband(self, image: ArrayLike, out: ScanResult | None = None) -> tuple[ScanResult, Baseband, Carriers]:
+        """`scan` with method ``baseband`` (`sliscan.fastscan`) into `out` if given, then the 3D
+        filters that are on; also the baseband envelopes and the carriers."""
         t0 = time.perf_counter()
         baseband, carriers = self.demodulate_baseband(image)
         t1 = time.perf_counter()
@@ -416,11 +428,11 @@ class Scanner:
                                                                 if k == "min_modulation"})
         t2 = time.perf_counter()
         result = fastscan.scan_baseband(baseband, levels, self.spec, self.stripe_geometry(),
-                                        self.calibration.camera.shape, **options)
+                                        self.calibration.camera.shape, out=out, **options)
         valid = self._filtered(result.proj_map, result.valid, self.spec.orientation, carriers.window)
         if valid is not result.valid:
-            proj_map, stripe = _finish(result.points, valid, result.proj_map, result.stripe)
-            result = dataclasses.replace(result, valid=valid, proj_map=proj_map, stripe=stripe)
+            result.valid[...] = valid
+            _finish(result.points, result.valid, result.proj_map, result.stripe, in_place=True)
         t3 = time.perf_counter()
         # the stripes and the points come from one pass: "triangulate" times it, with the filters
         result.timings.update(demodulate=t1 - t0, decode=t2 - t1, triangulate=t3 - t2, total=t3 - t0)
