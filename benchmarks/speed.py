@@ -2,8 +2,8 @@
 
 On the same rendered frames (the virtual rig's sphere under the accuracy benchmark's smooth
 albedo conditions, sliscan's default pattern), for a 1280x1024 and a 2592x1944 camera and
-each Scanner configuration of `CONFIGS` (the two demodulators, the real-time baseband path with
-and without the 3D filters): each stage of `Scanner.scan` (demodulate, decode, triangulate with its
+each Scanner configuration of `CONFIGS` (the two demodulators, the baseband path with the 3D
+filters, the real-time configuration without them, into reused or new output arrays): each stage of `Scanner.scan` (demodulate, decode, triangulate with its
 filters), the whole in-memory scan, and the export to npz and PLY; median and spread (min to
 max) over 7 runs after one warm-up run, 3 runs for anything over 1 s; the peak memory of one
 scan (ru_maxrss of a fresh subprocess).  In the same run, when installed (the `bench`
@@ -50,11 +50,18 @@ PATTERNS = {"default": patterns.default_spec, "phase": patterns.phase_spec}
 
 #: `--methods` choices: the `Scanner` options of each.  ``realtime``: the baseband path as a
 #: stream of frames from one rig uses it, carriers found in the first frame and kept, without
-#: the 3D filters (issue 6's configuration: demodulate + decode + triangulate).
+#: the 3D filters (issue 6's configuration: demodulate + decode + triangulate), each frame
+#: scanned into the previous frame's result (`REUSE_OUTPUTS`); ``realtime-fresh``: the same
+#: with new output arrays for every frame.
 CONFIGS: dict[str, dict] = {"window": dict(method="window"), "bandpass": dict(method="bandpass"),
                             "baseband": dict(method="baseband"),
                             "realtime": dict(method="baseband", reuse_carriers=True, remove_speckles=False,
-                                             remove_narrow_runs=False)}
+                                             remove_narrow_runs=False),
+                            "realtime-fresh": dict(method="baseband", reuse_carriers=True, remove_speckles=False,
+                                                   remove_narrow_runs=False)}
+
+#: The configurations whose scans overwrite the previous scan's arrays (`Scanner.scan`'s `out`).
+REUSE_OUTPUTS = {"realtime"}
 
 
 def frame(camera: tuple[int, int], cache: Path, pattern: str = "default") -> tuple[np.ndarray, simulate.Rig, PatternSpec]:
@@ -91,7 +98,7 @@ def stage_times(image: np.ndarray, rig: simulate.Rig, spec: PatternSpec, config:
     timings, last = [], []  # each run's stage times, the last result (not every one: memory)
 
     def scan() -> None:
-        last[:] = [scanner.scan(image)]
+        last[:] = [scanner.scan(image, out=last[0] if last and config in REUSE_OUTPUTS else None)]
         timings.append(last[0].timings)
 
     total = timed(scan, runs)

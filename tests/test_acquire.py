@@ -231,6 +231,32 @@ def test_live_loop_on_a_moving_sphere(small_rig):
     assert preview[invalid].max() == 0 and preview[seen[0].result.valid].max() > 0
 
 
+def test_live_with_the_real_time_method_scans_each_frame_into_the_last_ones_arrays(small_rig):
+    """With method baseband every frame's result has the same arrays (`Scanner.scan`'s `out`),
+    each holding that frame's scan while the sink has it: what a fresh scan of the frame gives."""
+    spec = patterns.default_spec((1024, 768))
+    moving = motion.Motion(2, (6.0, 0.0, 0.0), 4.0)
+    cond = virtual_conditions(noise=False)
+    stage = devices.VirtualStage(small_rig, simulate.sphere_scene(), cond, motion=moving)
+    scanner = Scanner(spec, small_rig.calibration, method="baseband", reuse_carriers=True)
+    copies, arrays = [], []
+
+    def sink(frame: acquire.LiveFrame) -> bool:
+        copies.append((frame.raw.copy(), frame.result.valid.copy(), frame.result.points.copy()))
+        arrays.append(frame.result.points)
+        return True
+
+    acquire.run_live(devices.VirtualDisplay(stage), devices.VirtualCamera(stage), scanner, patterns.render_pattern(spec),
+                     sink=sink, clock=stage.clock, frames=2)
+    assert arrays[0] is arrays[1]
+    assert not np.array_equal(copies[0][1], copies[1][1])  # the sphere moved
+    fresh = Scanner(spec, small_rig.calibration, method="baseband", reuse_carriers=True)  # the same carriers
+    for raw, valid, points in copies:
+        expected = fresh.scan(raw)
+        assert np.array_equal(valid, expected.valid) and np.array_equal(points, expected.points, equal_nan=True)
+        assert valid.mean() > 0.3
+
+
 # --- the commands ----------------------------------------------------------------------------
 
 

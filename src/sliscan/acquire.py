@@ -606,16 +606,19 @@ def run_live(display: Display, camera: Camera, scanner: Scanner, pattern: ArrayL
     """Project one single-shot `pattern` ((H, W) of the display), then scan every camera frame.
 
     Ends after `frames` frames, after `seconds` (wall clock), or when `sink` returns False;
-    Ctrl-C ends it too (KeyboardInterrupt propagates).
+    Ctrl-C ends it too (KeyboardInterrupt propagates).  With the real-time method (``baseband``)
+    each frame is scanned into the previous frame's result (`Scanner.scan`'s `out`): a frame's
+    result is the sink's until it returns, and must be copied to be kept.
     """
     display.show(display_image(pattern, display.size, "pattern"))
     (RealClock() if clock is None else clock).sleep(settle_s)
     t0 = time.perf_counter()
     recent: deque[float] = deque([t0], maxlen=LIVE_FPS_WINDOW + 1)
     count, valid = 0, 0.0
+    result: ScanResult | None = None
     while (frames is None or count < frames) and (seconds is None or time.perf_counter() - t0 < seconds):
         raw = camera.grab()
-        result = scanner.scan(raw)
+        result = scanner.scan(raw, out=result if scanner.method == "baseband" else None)
         now = time.perf_counter()
         recent.append(now)
         fps = (len(recent) - 1) / max(recent[-1] - recent[0], 1e-9)

@@ -118,12 +118,12 @@ def _gather_rows(spectrum: NDArray[np.complex64], starts: NDArray[np.int64], gai
     baseband in `out` ``(C + 1, H, L)`` (see `BasebandPlan`)."""
     length, span, top = out.shape[2], gains.shape[2], spectrum.shape[1]
     for c in range(out.shape[0]):
+        at = (np.arange(span) - shifts[c]) % length  # where each band bin lands
         for y in rows:
             out[c, y, :] = 0
-            for j in range(span):
-                k = starts[c, y] + j
-                if 0 <= k < top:
-                    out[c, y, (j - shifts[c]) % length] = spectrum[y, k] * gains[c, y, j]
+            first = starts[c, y]
+            for j in range(max(0, -first), min(span, top - first)):  # the band's bins inside the spectrum
+                out[c, y, at[j]] = spectrum[y, first + j] * gains[c, y, j]
 
 
 @dataclass(frozen=True, eq=False)
