@@ -279,8 +279,8 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
 
 
 #: About how many samples each of `frame_levels`' two-means clusterings reads (between this
-#: and 4 times it: `decode._Scale.of`'s regular grid of the H x 96 samples, every 3rd or 4th in
-#: both directions at 1280x1024, every 4th to 6th at 5 MP).  A cluster's median from ~2500 samples is off by well under
+#: and 4 times it: `decode._Scale.of`'s regular grid of the H x 96 samples, every 4th in both
+#: directions at 1280x1024, every 5th or 6th at 5 MP: 5-6.5k samples).  A cluster's median from ~2500 samples is off by well under
 #: 1 % of the off-on span, against a decision margin (`min_confidence`) of 5 %; 20k samples
 #: cost 3x the time (8.7 against 3.5 ms per frame at 1280x1024).
 LEVEL_SAMPLES = 5_000
