@@ -250,10 +250,11 @@ class Scanner:
             if self.spec.phase_carriers:
                 raise InputError("method 'baseband' decodes stripes only; a pattern with a phase channel needs the "
                                  "'window' method")
-            unknown = set(self.decode_options) - {"min_modulation", "min_confidence", "stripe_borders", "order"}
+            unknown = set(self.decode_options) - {"min_modulation", "min_confidence", "stripe_borders", "zero_code_dc",
+                                                  "order"}
             if unknown or self.decode_options.get("order"):
                 raise InputError(f"method 'baseband' decides each pixel on its own and takes only min_modulation, "
-                                 f"min_confidence and stripe_borders, got {sorted(self.decode_options)}")
+                                 f"min_confidence, stripe_borders and zero_code_dc, got {sorted(self.decode_options)}")
         if tuple(self.calibration.projector.size) != tuple(self.spec.projector_size):
             w, h = self.calibration.projector.size
             pw, ph = self.spec.projector_size
