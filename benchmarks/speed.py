@@ -53,12 +53,9 @@ PATTERNS = {"default": patterns.default_spec, "phase": patterns.phase_spec}
 #: the 3D filters (issue 6's configuration: demodulate + decode + triangulate), each frame
 #: scanned into the previous frame's result (`REUSE_OUTPUTS`); ``realtime-fresh``: the same
 #: with new output arrays for every frame.
+_REALTIME = dict(method="baseband", reuse_carriers=True, remove_speckles=False, remove_narrow_runs=False)
 CONFIGS: dict[str, dict] = {"window": dict(method="window"), "bandpass": dict(method="bandpass"),
-                            "baseband": dict(method="baseband"),
-                            "realtime": dict(method="baseband", reuse_carriers=True, remove_speckles=False,
-                                             remove_narrow_runs=False),
-                            "realtime-fresh": dict(method="baseband", reuse_carriers=True, remove_speckles=False,
-                                                   remove_narrow_runs=False)}
+                            "baseband": dict(method="baseband"), "realtime": _REALTIME, "realtime-fresh": _REALTIME}
 
 #: The configurations whose scans overwrite the previous scan's arrays (`Scanner.scan`'s `out`).
 REUSE_OUTPUTS = {"realtime"}

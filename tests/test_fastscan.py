@@ -16,6 +16,9 @@ from sliscan.pipeline import Scanner
 
 WINDOW = 40
 FREQUENCIES = np.array([4.0, 3.0, 2.0, 1.0]) / WINDOW
+#: Issue 2's realistic conditions with smooth albedo, for the small spheres of these tests.
+SMOOTH = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=4), ambient=0.1, projector_gamma=2.2,
+                             supersample=2, seed=4)
 
 
 def lines(amplitudes, width=1200, height=3, dc=0.4):
@@ -61,9 +64,7 @@ def sphere_scan(request):
     rig = simulate.virtual_rig(camera_size=(480, 360), projector_size=(1024, 768),
                                baseline_axis="horizontal" if horizontal else "vertical")
     spec = patterns.default_spec((1024, 768), orientation=request.param)
-    conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=4), ambient=0.1,
-                                     projector_gamma=2.2, supersample=2, seed=4)
-    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), SMOOTH)
     scanner = Scanner(spec, rig.calibration, method="baseband", remove_speckles=False, remove_narrow_runs=False)
     return rig, spec, capture, scanner, scanner.scan(capture.image)
 
@@ -181,9 +182,7 @@ def test_the_fast_scan_measures_the_points_of_a_rig_with_lens_distortion():
                                camera_distortion=(-0.1, 0.05, 1e-3, -5e-4, 0.0),
                                projector_distortion=(0.08, -0.03, -8e-4, 1e-3, 0.0))
     spec = patterns.default_spec((1024, 768))
-    conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=4), ambient=0.1,
-                                     projector_gamma=2.2, supersample=2, seed=4)
-    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), SMOOTH)
     scanner = Scanner(spec, rig.calibration, method="baseband", remove_speckles=False, remove_narrow_runs=False)
     assert not scanner.stripe_geometry().tabled
     result = scanner.scan(capture.image)
@@ -207,9 +206,7 @@ def test_the_fast_scan_finds_the_thesis_patterns_lit_all_zero_stripe():
     Their points are the table's."""
     rig = simulate.virtual_rig(camera_size=(480, 360), projector_size=(1024, 768))
     spec = patterns.thesis_spec((1024, 768))
-    conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=4), ambient=0.1,
-                                     projector_gamma=2.2, supersample=2, seed=4)
-    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), SMOOTH)
     scanner = Scanner(spec, rig.calibration, method="baseband")
     result = scanner.scan(capture.image)
     a = accuracy(result, capture.truth, spec, rig.calibration)

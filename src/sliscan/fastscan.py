@@ -350,7 +350,8 @@ def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, ge
         measured_points, measured = triangulator.measure(proj_map, valid, test)
         points[...] = measured_points
         valid &= measured
-        proj_map[~valid], stripe[~valid] = np.nan, -1
+        dropped = ~valid
+        proj_map[dropped], stripe[dropped] = np.nan, -1
     return ScanResult(points=points, valid=valid, texture=texture, proj_map=proj_map, stripe=stripe,
                       confidence=confidence)
 
