@@ -20,11 +20,18 @@ Each line gets its own carrier frequencies and window (`Carriers.line_frequencie
 transform does): its last window's light reaches the first window; padding the line with
 zeros to the next fast length was measured worse (the padded edge is a step in every carrier).
 
+A capture with sharp reflectance edges is first divided by its albedo (`normalise_lines`): a
+step of the albedo multiplies the whole pattern, and its broadband spectrum lands in every
+carrier's band, where no window tells it from the code.  Since the transform takes each line
+as periodic, the normalised line's two ends are then brought to one level by a gain that is a
+log-linear ramp along it (a ramp of reflectance costs the envelopes' ratios nothing; a jump
+between the line's ends spreads into every band near both ends).
+
 `demodulate_baseband` is the demodulator of `Scanner(method="baseband")`, whose decoding and
 triangulation then run in one compiled pass over the pixels (`sliscan.fastscan`).  It fits no
-window per pixel, so it has none of the window demodulator's edge handling (one-sided windows
-next to depth and shadow edges, the albedo steps, the misfit and noise estimates): it trades
-accuracy for speed (README, "Speed").
+window per pixel, so it has none of the window demodulator's other edge handling (one-sided
+windows next to depth and shadow edges, the misfit and noise estimates): it trades accuracy
+for speed (README, "Speed").
 """
 
 from __future__ import annotations
@@ -37,11 +44,19 @@ import scipy.fft
 from numpy.typing import NDArray
 
 from sliscan._threads import default_workers, over_rows
-from sliscan.demodulate import Carriers, Demodulated
+from sliscan.demodulate import Carriers, Demodulated, albedo_estimate
 
 #: Half-width of each carrier's band, in carrier spacings: the triangle window's transfer
 #: function is under 2.5 % of its peak beyond it (``sinc(1.5)**2``).
 REACH = 1.5
+
+#: `albedo_estimate` options of `normalise_lines` for the ``"steps"`` estimate: each line read
+#: left to right only, half the detector's cost; on the 5 MP captures of the accuracy
+#: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (README,
+#: "Speed", twentieth session).
+STEPS_OPTIONS: dict[str, bool] = {"both_ways": False}
+#: The largest factor `normalise_lines` levels a line's ends by.
+MAX_LEVELLING = 10.0
 
 
 def triangle_response(frequency: NDArray[np.float64], window: NDArray[np.float64] | float) -> NDArray[np.float64]:
@@ -126,6 +141,62 @@ def _gather_rows(spectrum: NDArray[np.complex64], starts: NDArray[np.int64], gai
                 out[c, y, at[j]] = spectrum[y, first + j] * gains[c, y, j]
 
 
+@numba.njit(cache=True, nogil=True)
+def _levelled_rows(image: NDArray[np.float32], albedo: NDArray[np.float32], windows: NDArray[np.intp],
+                   rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`normalise_lines` on the given `rows`: `albedo` ``(H, W)`` times each line's ramp (in
+    place), and `image` over it into `out`."""
+    w = image.shape[1]
+    for y in rows:
+        t = min(windows[y], w // 2)
+        left = right = 0.0
+        for x in range(t):
+            left += image[y, x] / albedo[y, x]
+            right += image[y, w - t + x] / albedo[y, w - t + x]
+        # the log gain: 0 at the middle of the first window, log(right / left) at the last's,
+        # at most `MAX_LEVELLING` in all (a dark end cannot be levelled by a gentle ramp)
+        bound = max(left, right) / MAX_LEVELLING + 1e-12
+        slope = np.log(max(right, bound) / max(left, bound)) / max(w - t, 1)
+        gain, step = np.exp(-0.5 * t * slope), np.exp(slope)
+        for x in range(w):
+            a = np.float32(albedo[y, x] * gain)
+            albedo[y, x] = a
+            out[y, x] = image[y, x] / a
+            gain *= step
+
+
+def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
+                    workers: int | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """A capture divided by its albedo for `demodulate_baseband` (see the module docstring):
+    `sliscan.demodulate.albedo_estimate` (``"steps"`` with `STEPS_OPTIONS`), times a log-linear
+    ramp per line that brings the means of the line's first and last windows (one carrier
+    spacing period) of the normalised capture to one level.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Capture with the carriers along axis 1.
+    carriers : Carriers
+        Found in it (each line's window).
+    estimate : str
+        One of `sliscan.demodulate.ALBEDO_ESTIMATES`.
+    workers : int, optional
+        Threads over the lines (default: `default_workers`).
+
+    Returns
+    -------
+    (normalised, albedo) : two (H, W) float32 arrays
+        ``image / albedo`` and the albedo with its ramps (relative: its scale is arbitrary).
+    """
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    albedo = np.ascontiguousarray(albedo_estimate(img, carriers, estimate=estimate,
+                                                  **(STEPS_OPTIONS if estimate == "steps" else {})))
+    windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (img.shape[0],)), dtype=np.intp)
+    out = np.empty_like(img)
+    over_rows(lambda rows: _levelled_rows(img, albedo, windows, rows, out), img.shape[0], workers)
+    return out, albedo
+
+
 @dataclass(frozen=True, eq=False)
 class Baseband:
     """Envelopes and DC of a capture, sampled every `step` pixels along the carriers.
@@ -138,32 +209,53 @@ class Baseband:
         line is periodic: sample ``L`` is sample 0).
     step : float
         Pixels between samples.
+    albedo : (H, W) float32 array or None
+        The relative albedo the capture was divided by before the transforms
+        (`normalise_lines`), so `samples` describe the normalised capture; None if it was not.
     """
 
     samples: NDArray[np.float32]
     step: float
+    albedo: NDArray[np.float32] | None = None
 
     def demodulated(self, width: int) -> Demodulated:
         """The envelopes at every pixel of lines `width` long (linear interpolation), as a
-        `Demodulated` (residual 0: this demodulator fits no model to measure it by)."""
+        `Demodulated` (residual 0: this demodulator fits no model to measure it by), multiplied
+        back by `albedo` if there is one (image units; every ratio the decoder takes is the
+        normalised capture's)."""
         length = self.samples.shape[2]
         position = np.arange(width) / self.step
         low = np.floor(position).astype(np.intp)
         t = (position - low).astype(np.float32)
         full = self.samples[:, :, low % length] * (1 - t) + self.samples[:, :, (low + 1) % length] * t
+        if self.albedo is not None:
+            full *= self.albedo[None]
         return Demodulated(amplitude=np.ascontiguousarray(full[1:]), dc=np.ascontiguousarray(full[0]),
                            residual=np.zeros(full.shape[1:], np.float32))
 
+    def sampled_albedo(self) -> NDArray[np.float32] | None:
+        """`albedo` ``(H, L)`` at the pixels the samples describe (the nearest), or None."""
+        if self.albedo is None:
+            return None
+        columns = np.minimum(np.round(np.arange(self.samples.shape[2]) * self.step).astype(np.intp),
+                             self.albedo.shape[1] - 1)
+        return self.albedo[:, columns]
 
-def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, workers: int | None = None) -> Baseband:
+
+def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, albedo: NDArray[np.float32] | None = None,
+                        workers: int | None = None) -> Baseband:
     """The DC and every carrier's envelope of `image`, decimated (see the module docstring).
 
     Parameters
     ----------
     image : (H, W) float32 array
-        Capture with the carriers along axis 1 (`sliscan.demodulate.along_carriers`), in [0, 1].
+        Capture with the carriers along axis 1 (`sliscan.demodulate.along_carriers`), in [0, 1],
+        divided by `albedo` if that is given.
     plan : BasebandPlan
         For this frame size and these carriers.
+    albedo : (H, W) float32 array, optional
+        The relative albedo `image` was divided by (`normalise_lines`), kept in the result
+        (`Baseband.albedo`).
     workers : int, optional
         Threads of the transforms and the band gathering (default: `default_workers`).
     """
@@ -177,4 +269,4 @@ def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, work
     samples = np.empty(bands.shape, np.float32)
     samples[0] = signal[0].real
     np.abs(signal[1:], out=samples[1:])
-    return Baseband(samples=samples, step=plan.step)
+    return Baseband(samples=samples, step=plan.step, albedo=albedo)

@@ -814,7 +814,22 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
 
 def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
                      **options: float | bool) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Divide a capture by an edge-preserving estimate of its albedo, line by line along axis 1.
+    """Divide a capture by an edge-preserving estimate of its albedo (`albedo_estimate`), line
+    by line along axis 1.
+
+    Returns
+    -------
+    (normalised, albedo) : two (H, W) float32 arrays
+        ``image / albedo`` and the estimate.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    albedo = albedo_estimate(img, carriers, estimate=estimate, **options)
+    return (img / albedo).astype(np.float32), albedo
+
+
+def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
+                    **options: float | bool) -> NDArray[np.float32]:
+    """An edge-preserving estimate of a capture's albedo, line by line along axis 1.
 
     A reflectance edge multiplies the whole pattern, so inside a window that straddles it the
     carriers are no longer sinusoids of constant amplitude: the step's broadband spectrum lands
@@ -841,9 +856,8 @@ def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimat
 
     Returns
     -------
-    (normalised, albedo) : two (H, W) float32 arrays
-        ``image / albedo`` and the estimate (relative for ``"steps"``; floored at 1e-4 of the
-        image's maximum).
+    (H, W) float32 array
+        Relative for ``"steps"``; floored at 1e-4 of the image's maximum for the others.
     """
     img = np.asarray(image, dtype=np.float32)
     if estimate not in ALBEDO_ESTIMATES:
@@ -851,8 +865,7 @@ def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimat
     h, w = img.shape
     windows = np.broadcast_to(carriers.line_windows(), (h,))
     if estimate == "steps":
-        albedo = _albedo_steps(img, windows, **options)
-        return (img / albedo).astype(np.float32), albedo
+        return _albedo_steps(img, windows, **options)
     floor = np.float32(max(float(img.max()), 1e-6) * 1e-4)
     length = max(3, int(np.ceil(options.get("size", 1.0 if estimate == "guided" else 1.25) * float(windows.max()))))
     if estimate in ("closing", "envelopes"):
@@ -882,8 +895,7 @@ def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimat
         gain = np.where(k >= 1, 1 - np.exp(-0.5 * ((harmonic - k) / (0.5 * options.get("width", 0.25))) ** 2), 1.0)
         smooth = np.fft.irfft(np.fft.rfft(work, axis=1) * gain, n=n, axis=1)[:, pad : pad + w]
         albedo = np.exp(smooth) if estimate == "notch-log" else smooth
-    albedo = np.maximum(albedo, floor).astype(np.float32)
-    return (img / albedo).astype(np.float32), albedo
+    return np.maximum(albedo, floor).astype(np.float32)
 
 
 def butterworth_bandpass(freqs: NDArray[np.float64], centre: float, half_width: float, order: int) -> NDArray[np.float64]:

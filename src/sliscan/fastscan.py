@@ -1,8 +1,9 @@
 """The real-time single-shot scan: baseband envelopes to points in one compiled pass (issue 6).
 
-`Scanner(method="baseband")` (``sliscan scan --method baseband``).  The capture is demodulated
-at baseband (`sliscan.baseband`: one transform per line, each envelope sampled every ~27
-pixels), the frame's levels are read from those samples as `sliscan.decode.decode` reads them
+`Scanner(method="baseband")` (``sliscan scan --method baseband``).  The capture is divided by
+its albedo steps (`sliscan.baseband.normalise_lines`, unless `Scanner.albedo` is None) and
+demodulated at baseband (`sliscan.baseband`: one transform per line, each envelope sampled
+every ~27 pixels), the frame's levels are read from those samples as `sliscan.decode.decode` reads them
 from full-size envelopes (`decode.FrameLevels`), and then one compiled loop over the pixels
 interpolates each pixel's DC and envelopes, decides its bits and stripe with `decode`'s
 per-pixel rules, and triangulates it.  The triangulation is a table: a stripe pattern's
@@ -13,7 +14,7 @@ found once per rig (`StripeGeometry`).  A rig with lens distortion has no such t
 camera rows are not lines): the pass decides its stripes and `Triangulator.measure` triangulates
 them.
 
-What it leaves out, for speed: the window demodulator's edge handling (see `sliscan.baseband`),
+What it leaves out, for speed: the window demodulator's other edge handling (see `sliscan.baseband`),
 the decisions by order, the border refinement, the neighbours' agreement and the 3D filters
 (speckles, narrow runs); patterns with a phase channel are not supported (their stripes only
 unwrap the fringe).  The thesis's lit all-zero stripe, which needs a walk along the phase
@@ -330,18 +331,26 @@ def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, ge
         Without timings: `out`'s arrays if given, else new ones.
     """
     samples = baseband.samples
-    top = max(float(np.percentile(samples[0], 99.5)), 1e-6)
+    # the texture is the capture's DC: with an albedo, the normalised DC times it, written by the
+    # pass over the albedo's smallest sampled value (so nothing is clipped before the product)
+    albedo = baseband.sampled_albedo()
+    least = 1.0 if albedo is None else max(float(albedo.min()), 1e-6)
+    top = max(float(np.percentile(samples[0] if albedo is None else samples[0] * albedo, 99.5)), 1e-6)
     h, w = shape
     points, valid, texture, proj_map, stripe, confidence = outputs(shape, out)
     pilot = spec.pilot_index if spec.pilot is not None else -1
     transposed = spec.orientation == "columns"
     over_rows(lambda lines: _scan_lines(
-        samples, baseband.step, transposed, np.float32(levels.floor), np.float32(1 / top),
+        samples, baseband.step, transposed, np.float32(levels.floor), np.float32(least / top),
         levels.lit_scale.off, (1 / levels.lit_scale.span).astype(np.float32), pilot,
         levels.bits.off, (1 / levels.bits.span).astype(np.float32),
         np.float32(min_modulation), np.float32(0.5 * min_confidence), stripe_borders, _stripe_of_code(spec),
         geometry.centres, geometry.table, geometry.span, geometry.gaps, geometry.gap_masks, geometry.tabled, lines,
         points, valid, texture, proj_map, stripe, confidence), w if transposed else h, workers)
+    if baseband.albedo is not None:
+        texture *= baseband.albedo.T if transposed else baseband.albedo
+        texture *= np.float32(1 / least)
+        np.minimum(texture, 1, out=texture)
     if spec.pilot is None and not spec.skip_zero_code:  # the lit all-zero stripe (the thesis's pattern)
         _add_zero_stripe(zero_stripe(stripe, texture, spec, min_dc=zero_code_dc) & ~valid, geometry, points, valid,
                          proj_map, stripe)

@@ -19,9 +19,10 @@ from numpy.typing import ArrayLike, NDArray
 from sliscan import fastscan, fringe
 from sliscan._threads import over_rows
 from sliscan._validate import InputError, check_image
-from sliscan.baseband import Baseband, BasebandPlan, demodulate_baseband
+from sliscan.baseband import Baseband, BasebandPlan, demodulate_baseband, normalise_lines
 from sliscan.decode import Decoded, decode
-from sliscan.demodulate import Carriers, Demodulated, along_carriers, check_exposure, demodulate, detect_carriers
+from sliscan.demodulate import (ALBEDO_ESTIMATES, Carriers, Demodulated, along_carriers, check_exposure, demodulate,
+                                detect_carriers)
 from sliscan.outliers import default_max_jump, remove_narrow_runs, remove_speckles
 from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
@@ -215,6 +216,12 @@ class Scanner:
         Composite kinds: drop the runs narrower than the demodulation window that jump away
         from both sides along the carriers (wrong codes across a depth edge:
         `sliscan.outliers.remove_narrow_runs`, with `default_max_jump`).  On by default.
+    albedo : str or None
+        Methods ``window`` and ``baseband``: the albedo estimate the capture is divided by
+        before demodulation (`sliscan.demodulate.normalise_albedo`; ``"steps"``, the default,
+        the sharp reflectance steps, which no demodulation window can fit); None for none (the
+        fastest baseband scan, for surfaces without sharp texture: README, "Speed").  The
+        baseband path levels each line's ends as well (`sliscan.baseband.normalise_lines`).
 
     Examples
     --------
@@ -237,6 +244,7 @@ class Scanner:
     min_angle_deg: float = 2.0
     remove_speckles: bool = True
     remove_narrow_runs: bool = True
+    albedo: str | None = "steps"
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
     _tests: dict[tuple[str, float], MeasurableTest] = field(default_factory=dict, init=False, repr=False)
@@ -246,6 +254,8 @@ class Scanner:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.albedo is not None and self.albedo not in ALBEDO_ESTIMATES:
+            raise InputError(f"albedo must be one of {', '.join(ALBEDO_ESTIMATES)} or None, got {self.albedo!r}")
         if self.method == "baseband" and self.spec.kind not in MULTI_FRAME_KINDS:
             if self.spec.phase_carriers:
                 raise InputError("method 'baseband' decodes stripes only; a pattern with a phase channel needs the "
@@ -267,7 +277,8 @@ class Scanner:
             baseband, carriers = self.demodulate_baseband(image)
             return self._interpolated(baseband), carriers
         img = check_image("capture", image, shape=self.calibration.camera.shape)
-        demod, found = demodulate(img, self.spec, method=self.method, carriers=self._known_carriers())
+        demod, found = demodulate(img, self.spec, method=self.method, carriers=self._known_carriers(),
+                                  albedo=self.albedo)
         self._keep_carriers(found)
         return demod, found
 
@@ -296,7 +307,10 @@ class Scanner:
         view = along_carriers(img, self.spec)
         if self._plan is None or self._plan[0] is not carriers:
             self._plan = carriers, BasebandPlan.of(*view.shape, carriers)
-        return demodulate_baseband(view, self._plan[1]), carriers
+        gain = None
+        if self.albedo is not None:
+            view, gain = normalise_lines(view, carriers, estimate=self.albedo)
+        return demodulate_baseband(view, self._plan[1], albedo=gain), carriers
 
     def stripe_geometry(self) -> fastscan.StripeGeometry:
         """The rig's `sliscan.fastscan.StripeGeometry` for the pattern, built on first use and kept."""
