@@ -50,11 +50,11 @@ PATTERNS = {"default": patterns.default_spec, "phase": patterns.phase_spec}
 
 #: `--methods` choices: the `Scanner` options of each.  ``realtime``: the baseband path as a
 #: stream of frames from one rig uses it, carriers found in the first frame and kept, without
-#: the 3D filters (issue 6's configuration: demodulate + decode + triangulate) and without the
-#: albedo steps (for surfaces without sharp texture), each frame scanned into the previous
-#: frame's result (`REUSE_OUTPUTS`); ``realtime-fresh``: the same with new output arrays for
-#: every frame; ``realtime-textured``: ``realtime`` with the albedo steps (the baseband
-#: path's default, for textured surfaces).
+#: the 3D filters (issue 6's configuration: demodulate + decode + triangulate) and without
+#: dividing the capture by its albedo (``Scanner(albedo=None)``), each frame scanned into the
+#: previous frame's result (`REUSE_OUTPUTS`); ``realtime-fresh``: the same with new output
+#: arrays for every frame; ``realtime-textured``: ``realtime`` divided by its albedo steps and
+#: flat field (the baseband path's default, for textured surfaces).
 _REALTIME = dict(method="baseband", reuse_carriers=True, remove_speckles=False, remove_narrow_runs=False, albedo=None)
 CONFIGS: dict[str, dict] = {"window": dict(method="window"), "bandpass": dict(method="bandpass"),
                             "baseband": dict(method="baseband"), "realtime": _REALTIME, "realtime-fresh": _REALTIME,

@@ -261,7 +261,8 @@ def test_scan_frame_never_raises_and_reuses_its_scanner(take: Path) -> None:
 
 
 def test_job_decisions_shape_its_scanner(take: Path) -> None:
-    """A job's decisions reach the worker's scanner (and its token), so a batch decodes as `sliscan scan` does."""
+    """A job's decisions and albedo steps reach the worker's scanner (and its token), so a batch decodes as
+    `sliscan scan` does."""
     spec, calibration = PatternSpec.load(take / "cp.json"), Calibration.load(take / "rig.json")
     jobs = {d: batch.Job.create(spec, calibration, decisions=d) for d in ("auto", "order", "pixel")}
     assert len({job.token for job in jobs.values()}) == 3
@@ -269,6 +270,9 @@ def test_job_decisions_shape_its_scanner(take: Path) -> None:
                                                                                       {"order": False}]
     with pytest.raises(Exception, match="decisions must be one of"):
         batch.Job.create(spec, calibration, decisions="majority")
+    plain = batch.Job.create(spec, calibration, albedo_steps=False)
+    assert plain.token != jobs["auto"].token
+    assert (plain.scanner().albedo, jobs["auto"].scanner().albedo) == (None, "steps")
 
 
 def test_batch_report_lists_every_frame(take: Path) -> None:

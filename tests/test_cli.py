@@ -187,6 +187,22 @@ def test_scan_method_baseband_is_the_real_time_path_of_the_python_api(plane: tup
                   "baseband", tmp_path)
 
 
+def test_scan_without_albedo_steps_is_the_scanner_without_them(plane: tuple[Path, str], tmp_path: Path) -> None:
+    """--no-albedo-steps reaches the scanner: the baseband scan equals ``Scanner(albedo=None)``'s,
+    which differs from the default's (the flat field divides even a uniform plane's capture)."""
+    folder, _ = plane
+    ok("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+       "--method", "baseband", "--no-albedo-steps", "--npz", "scan.npz", cwd=tmp_path)
+    from_cli = npz.read_scan_npz(tmp_path / "scan.npz")
+    spec, calibration = PatternSpec.load(folder / "cp.json"), Calibration.load(folder / "rig.json")
+    image = read_image(folder / "capture.png")
+    plain, steps = (Scanner(spec, calibration, method="baseband", albedo=albedo).scan(image)
+                    for albedo in (None, "steps"))
+    assert not np.array_equal(plain.confidence, steps.confidence)
+    np.testing.assert_array_equal(from_cli.valid, plain.valid)
+    np.testing.assert_array_equal(from_cli.confidence, plain.confidence)
+
+
 @pytest.mark.parametrize("method", ["svd", "lstsq"])
 def test_calibrate_recovers_the_rig(tmp_path: Path, method: str) -> None:
     rig = simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR)

@@ -39,8 +39,27 @@ def test_baseband_samples_are_the_carriers_amplitudes_and_the_dc():
     baseband = demodulate_baseband(lines(amps), plan)
     assert plan.length < 1200 / 8  # decimated: one sample per 8 or more pixels
     np.testing.assert_allclose(baseband.samples[0], 0.4, atol=1e-5)
-    np.testing.assert_allclose(baseband.samples[1:], np.broadcast_to(amps[:, None, None], (4, 3, plan.length)),
+    np.testing.assert_allclose(baseband.samples[1:], np.broadcast_to(amps[:, None, None], (4, 3, plan.length + 1)),
                                atol=1e-5)
+
+
+@pytest.mark.parametrize("width", [1210, 1225])
+def test_baseband_samples_near_the_line_ends_do_not_see_the_other_end(width):
+    """Constant amplitudes on lines that are not a whole number of periods long, so the
+    transform's periodic line jumps where its ends meet: every sample, the ends' included
+    (each describes the pixel a window in), and every interpolated pixel is within 0.005 of
+    its amplitude (measured 0.0023 / 0.0028: the band's cut at `REACH`; the samples as the
+    transform gives them were 0.15 / 0.09 off at the first)."""
+    amps = np.array([0.1, 0.05, 0.2, 0.15])
+    carriers = Carriers(frequencies=FREQUENCIES, scale=1.0, window=WINDOW)
+    plan = BasebandPlan.of(3, width, carriers)
+    baseband = demodulate_baseband(lines(amps, width), plan)
+    assert baseband.samples.shape == (5, 3, plan.length + 1)
+    np.testing.assert_allclose(baseband.samples[0], 0.4, atol=0.005)
+    np.testing.assert_allclose(baseband.samples[1:], np.broadcast_to(amps[:, None, None], (4, 3, plan.length + 1)),
+                               atol=0.005)
+    np.testing.assert_allclose(baseband.demodulated(width).amplitude,
+                               np.broadcast_to(amps[:, None, None], (4, 3, width)), atol=0.005)
 
 
 def test_a_carrier_switching_on_is_half_strong_at_the_switch():
@@ -58,12 +77,12 @@ def test_a_carrier_switching_on_is_half_strong_at_the_switch():
     np.testing.assert_allclose(envelope[x0 - 300: x0 - WINDOW - 10], 0.0, atol=0.01)
 
 
-def test_normalised_lines_lose_an_albedo_step_and_their_ends_are_level():
+def test_normalised_lines_lose_an_albedo_step_and_a_smooth_albedo():
     """A periodic pattern times an albedo that steps by 4x mid-line and ramps by e**0.8 along
-    it: `normalise_lines` finds the step (a log-linear ramp is left to it), so the normalised
-    line is the pattern times a log-linear gain (exact but for the blur-free step's own pixel
-    and the detector's margins), and that gain makes the mean of the first window equal the
-    last's."""
+    it: `normalise_lines` finds the step (its height within the detector's 0.03) and divides
+    the rest out with the flat field, so the normalised line is the pattern times one constant
+    (to 1e-4; measured 1.5e-5) but within a window of the step and of the line's ends, where
+    the triangle straddles them; the estimate times the normalised line is the capture."""
     width = 1200
     x = np.arange(width)
     pattern = lines([0.1, 0.05, 0.2, 0.15], width)
@@ -71,16 +90,10 @@ def test_normalised_lines_lose_an_albedo_step_and_their_ends_are_level():
     carriers = Carriers(frequencies=FREQUENCIES, scale=1.0, window=WINDOW)
     normalised, estimate = normalise_lines((pattern * albedo).astype(np.float32), carriers)
     np.testing.assert_allclose(normalised * estimate, pattern * albedo, rtol=1e-5)
-    gain = np.log(normalised / pattern)
-    before, after = x < 611, x >= 611
-    fits = [np.polyfit(x[side], gain[0, side], 1) for side in (before, after)]
-    for fit, side in zip(fits, (before, after)):  # each side: log-linear, one slope
-        np.testing.assert_allclose(gain[:, side], np.broadcast_to(np.polyval(fit, x[side]), gain[:, side].shape),
-                                   atol=1e-4)
-    assert abs(fits[0][0] - fits[1][0]) < 1e-6
-    # the step divided out (log 4 = 1.39), but for the ramp within its measured span (0.03)
-    assert abs(np.polyval(fits[1], 611) - np.polyval(fits[0], 611)) < 0.05
-    np.testing.assert_allclose(normalised[:, :WINDOW].mean(axis=1), normalised[:, -WINDOW:].mean(axis=1), rtol=1e-3)
+    np.testing.assert_allclose(np.log(estimate[:, 611] / estimate[:, 610]), np.log(4.0), atol=0.03)
+    inside = (x >= WINDOW) & (x < width - WINDOW) & (np.abs(x - 611) > WINDOW)
+    gain = normalised[:, inside] / pattern[:, inside]
+    assert gain.max() / gain.min() - 1 < 1e-4
 
 
 @pytest.fixture(scope="module", params=["rows", "columns"])
@@ -143,15 +156,15 @@ def test_the_fast_scan_decides_each_pixel_by_decodes_rules_on_the_interpolated_e
 def test_the_fast_scan_decodes_the_realistic_sphere(sphere_scan):
     """Against the ground truth, with the 3D filters on (the Scanner's default): on the 480x360
     sphere under issue 2's conditions (smooth albedo), the fast path's stripes are right on
-    at least 83 % of the lit pixels (measured 86.4 % rows, 84.5 % columns), at most 1 % are
-    more than one stripe off (0.56 %, 0.78 %; without the filters 3.2 %, 3.5 %), and where it
-    decodes it adds little to the staircase: median error within issue 2's 10 % of the
-    oracle's (6 %, 5 %).  The filters drop points only: every one kept is in the unfiltered
-    scan, NaN elsewhere."""
+    at least 86 % of the lit pixels (measured 88.5 % rows, 89.2 % columns), at most 1 % are
+    more than one stripe off (0.53 %, 0.46 %; without the filters 2.7 %, 2.2 %), completeness
+    over 90 % (92.6 %, 92.4 %), and where it decodes it adds little to the staircase: median
+    error within issue 2's 10 % of the oracle's (6 %, 3 %).  The filters drop points only:
+    every one kept is in the unfiltered scan, NaN elsewhere."""
     rig, spec, capture, _, unfiltered = sphere_scan
     result = Scanner(spec, rig.calibration, method="baseband").scan(capture.image)
     a = accuracy(result, capture.truth, spec, rig.calibration)
-    assert a.stripe_accuracy > 0.83 and a.completeness > 0.88
+    assert a.stripe_accuracy > 0.86 and a.completeness > 0.90
     assert a.far_stripe < 0.01
     assert a.median_mm < 1.1 * a.oracle_median_mm
     assert not (result.valid & ~unfiltered.valid).any() and result.valid.sum() < unfiltered.valid.sum()
@@ -202,8 +215,8 @@ def test_the_fast_scan_measures_the_points_of_a_rig_with_lens_distortion():
     """A rig whose camera and projector have lens distortion has no per-row table (its camera
     rows are not lines): the pass decides the stripes and `Triangulator.measure` gives their
     points, exactly those of the decided projector map, and they are as accurate as on the
-    undistorted test sphere (issue 2's conditions: at least 83 % of the lit pixels' stripes
-    right, measured 85.8 %, completeness 91.4 %; median within 10 % of the oracle's, measured
+    undistorted test sphere (issue 2's conditions: at least 86 % of the lit pixels' stripes
+    right, measured 88.3 %, completeness 93.0 %; median within 10 % of the oracle's, measured
     5 %; the window path on the same capture: 60.5 % right, 62.3 % complete)."""
     rig = simulate.virtual_rig(camera_size=(480, 360), projector_size=(1024, 768),
                                camera_distortion=(-0.1, 0.05, 1e-3, -5e-4, 0.0),
@@ -220,24 +233,24 @@ def test_the_fast_scan_measures_the_points_of_a_rig_with_lens_distortion():
     assert (result.stripe[~result.valid] == -1).all() and np.isnan(result.proj_map[~result.valid]).all()
     a = accuracy(Scanner(spec, rig.calibration, method="baseband").scan(capture.image), capture.truth, spec,
                  rig.calibration)
-    assert a.stripe_accuracy > 0.83 and a.completeness > 0.88
+    assert a.stripe_accuracy > 0.86 and a.completeness > 0.90
     assert a.median_mm < 1.1 * a.oracle_median_mm
 
 
 def test_the_fast_scan_finds_the_thesis_patterns_lit_all_zero_stripe():
     """The thesis's pattern projects the all-zero code (no carrier): `zero_stripe` finds it from
     stripe 1 after the pass.  On the 480x360 sphere (issue 2's conditions, smooth albedo) it
-    takes the lit pixels' right stripes from 78.5 to 84.6 % and completeness from 84.4 to
-    90.8 %; of the pixels it adds ~90 % are stripe 0 (all stripe-0 pixels: 72.7 % right, with
-    the pass's own few border decisions); without dropping the stray stripe-1 seeds first, 49 %.
-    Their points are the table's."""
+    takes the lit pixels' right stripes from 81.4 to 87.3 % and completeness from 86.8 to
+    92.9 %; its stripe-0 pixels are 1.19 times the true ones, 72.5 % of them right (with the
+    pass's own few border decisions; without dropping the stray stripe-1 seeds first, 49 % when
+    that was measured, in the nineteenth session).  Their points are the table's."""
     rig = simulate.virtual_rig(camera_size=(480, 360), projector_size=(1024, 768))
     spec = patterns.thesis_spec((1024, 768))
     capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), SMOOTH)
     scanner = Scanner(spec, rig.calibration, method="baseband")
     result = scanner.scan(capture.image)
     a = accuracy(result, capture.truth, spec, rig.calibration)
-    assert a.stripe_accuracy > 0.82 and a.completeness > 0.88 and a.far_stripe < 0.015
+    assert a.stripe_accuracy > 0.85 and a.completeness > 0.90 and a.far_stripe < 0.015
     line = capture.truth.proj[..., 1]
     true_stripe = np.where(np.isfinite(line), stripe_of_line(np.nan_to_num(line), spec), -1)
     zero = result.valid & (result.stripe == 0)
@@ -251,10 +264,11 @@ def test_the_fast_scan_finds_the_thesis_patterns_lit_all_zero_stripe():
 
 def test_the_fast_scan_divides_a_sharp_checker_albedo_out():
     """The 40 mm checker (0.25 / 0.9) of issue 8 on the sphere, 960x720 camera, otherwise
-    issue 2's conditions: without the albedo steps the fast path gets 53 % of the lit pixels'
-    stripes right and 5.8 % more than one stripe off; dividing the capture by its albedo steps
-    (the default) 85 % and 1.5 % (seed 4).  The texture is still the capture's: brighter on
-    the light squares than on the dark ones by about their ratio (3.6)."""
+    issue 2's conditions: without the albedo (`albedo=None`) the fast path gets 57 % of the lit
+    pixels' stripes right and 5.0 % more than one stripe off; dividing the capture by its
+    albedo steps and flat field (the default) 87 % and 1.5 %, 93 % complete.  The texture is
+    still the capture's: brighter on the light squares than on the dark ones by about their
+    ratio (3.6; measured 3.5)."""
     rig = simulate.virtual_rig(camera_size=(960, 720), projector_size=(1024, 768))
     spec = patterns.default_spec((1024, 768))
     capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec),
@@ -263,8 +277,8 @@ def test_the_fast_scan_divides_a_sharp_checker_albedo_out():
                      spec, rig.calibration)
     result = Scanner(spec, rig.calibration, method="baseband").scan(capture.image)
     steps = accuracy(result, capture.truth, spec, rig.calibration)
-    assert plain.stripe_accuracy < 0.6 and plain.far_stripe > 0.04
-    assert steps.stripe_accuracy > 0.8 and steps.far_stripe < 0.025 and steps.completeness > 0.88
+    assert plain.stripe_accuracy < 0.65 and plain.far_stripe > 0.04
+    assert steps.stripe_accuracy > 0.84 and steps.far_stripe < 0.025 and steps.completeness > 0.90
     lit = scipy.ndimage.binary_erosion(capture.truth.lit & capture.truth.surface, iterations=6)
     light = np.median(result.texture[lit & (capture.truth.albedo > 0.8)])
     dark = np.median(result.texture[lit & (capture.truth.albedo < 0.3)])

@@ -16,16 +16,28 @@ the 1296x972 smooth sphere (seed 1, per-pixel decisions): 71 % and 81 % of the l
 stripes right against 87 % with the triangle; the box's slowly falling side lobes pick up
 the gamma's harmonics and the neighbouring carriers wherever the local frequency is off.
 Each line gets its own carrier frequencies and window (`Carriers.line_frequencies`,
-`line_windows`), so the zeros stay on the neighbours.  The line is taken as periodic (as the
-transform does): its last window's light reaches the first window; padding the line with
-zeros to the next fast length was measured worse (the padded edge is a step in every carrier).
+`line_windows`), so the zeros stay on the neighbours.  The transform takes the line as
+periodic: within a window of either end the triangle reaches round to the other end, whose
+carriers' phases do not continue this end's, and that jump lands in every band.  So, as the
+window demodulator's windows stop at the line's ends, the samples within a window of either
+end describe the window one window in (`BasebandPlan.ends`): on the 1296x972 sphere (seed 3)
+the pixels within 12 pixels of the ends had 21 % of their stripes right before, and every
+scene of the accuracy benchmark gained 1.5-3 points of right stripes (README, "Speed",
+twentieth session).  Padding the line with zeros to the next fast length was measured worse
+(the padded edge is a step in every carrier), and so was mirroring it (the mirror reverses
+the carriers' phases).
 
-A capture with sharp reflectance edges is first divided by its albedo (`normalise_lines`): a
-step of the albedo multiplies the whole pattern, and its broadband spectrum lands in every
-carrier's band, where no window tells it from the code.  Since the transform takes each line
-as periodic, the normalised line's two ends are then brought to one level by a gain that is a
-log-linear ramp along it (a ramp of reflectance costs the envelopes' ratios nothing; a jump
-between the line's ends spreads into every band near both ends).
+The capture is first divided by its albedo (`normalise_lines`, unless `Scanner.albedo` is
+None).  A sharp step of the albedo multiplies the whole pattern, and its broadband spectrum
+lands in every carrier's band, where no window tells it from the code: the steps are divided
+out first (`sliscan.demodulate.albedo_estimate`).  A smooth albedo (and shading) varies the
+DC within a window, and the triangle passes the DC's variation into the lowest carrier's band
+(its response one spacing from a carrier at 0.3 spacings is ``sinc(0.7)**2 = 0.14``), where
+the window demodulator's ramp would have fitted it: then the capture is divided by its flat
+field, the DC under the same triangle, so its DC is one level along each line (which also
+levels the line's two ends).  On the 1296x972 and 960x720 smooth-albedo captures this gained
+0.2-3 points of right stripes, on uniform albedo it lost 0.0-0.5, on the checker it changed
+nothing beyond 0.15 (README, "Speed", twentieth session).
 
 `demodulate_baseband` is the demodulator of `Scanner(method="baseband")`, whose decoding and
 triangulation then run in one compiled pass over the pixels (`sliscan.fastscan`).  It fits no
@@ -55,8 +67,11 @@ REACH = 1.5
 #: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (README,
 #: "Speed", twentieth session).
 STEPS_OPTIONS: dict[str, bool] = {"both_ways": False}
-#: The largest factor `normalise_lines` levels a line's ends by.
-MAX_LEVELLING = 10.0
+#: The flat field's floor in `normalise_lines`, relative to the capture's bright level (its
+#: 99th percentile): darker light (shadow, black surfaces) is divided by the floor instead,
+#: so its noise is not raised to the lit level.  A floor of 0.05 (a tenth of the bright DC)
+#: lost most of the flat field's gain on the smooth albedo (README, "Speed", twentieth session).
+FLAT_FLOOR = 0.01
 
 
 def triangle_response(frequency: NDArray[np.float64], window: NDArray[np.float64] | float) -> NDArray[np.float64]:
@@ -86,12 +101,16 @@ class BasebandPlan:
         Weight of each band bin (the window's transfer function times the transform's scale);
         bin ``j`` of a carrier's band lands at baseband bin ``j - J // 2`` (modulo `length`),
         the DC's at ``j``.
+    ends : (H,) float64 array
+        Each line's window (pixels): a sample nearer than this to either end of the line
+        describes the pixel this far from it instead (see the module docstring).
     """
 
     width: int
     length: int
     starts: NDArray[np.int64]
     gains: NDArray[np.complex64]
+    ends: NDArray[np.float64]
 
     @property
     def step(self) -> float:
@@ -123,7 +142,8 @@ class BasebandPlan:
         # inverse transform's 1 / L
         gains *= np.where(np.arange(gains.shape[0]) == 0, 1.0, 2.0)[:, None, None] * length / width
         gains[0] *= np.where(bins[0] == 0, 1.0, np.where(bins[0] <= half, 2.0, 0.0))
-        return cls(width=width, length=length, starts=starts, gains=gains.astype(np.complex64))
+        return cls(width=width, length=length, starts=starts, gains=gains.astype(np.complex64),
+                   ends=np.ascontiguousarray(windows[0, :, 0]))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -142,35 +162,64 @@ def _gather_rows(spectrum: NDArray[np.complex64], starts: NDArray[np.int64], gai
 
 
 @numba.njit(cache=True, nogil=True)
-def _levelled_rows(image: NDArray[np.float32], albedo: NDArray[np.float32], windows: NDArray[np.intp],
-                   rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
-    """`normalise_lines` on the given `rows`: `albedo` ``(H, W)`` times each line's ramp (in
-    place), and `image` over it into `out`."""
+def _samples_rows(periodic: NDArray[np.float32], step: float, ends: NDArray[np.float64], width: int,
+                  rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`Baseband.samples` of the given rows from `periodic` ``(C + 1, H, L)`` (sample ``m`` at
+    pixel ``m * step`` of the line taken as periodic) into `out` ``(C + 1, H, L + 1)``: sample
+    ``m`` at pixel ``m * step`` moved to within ``ends[y] .. width - 1 - ends[y]``, linearly
+    interpolated."""
+    channels, length = periodic.shape[0], periodic.shape[2]
+    for y in rows:
+        low = min(ends[y], 0.5 * (width - 1))
+        high = width - 1 - low
+        for m in range(length + 1):
+            at = min(max(m * step, low), high) / step
+            i = int(at)
+            t = np.float32(at - i)
+            j = i + 1 if i + 1 < length else 0
+            for c in range(channels):
+                out[c, y, m] = periodic[c, y, i] * (np.float32(1) - t) + periodic[c, y, j] * t
+
+
+@numba.njit(cache=True, nogil=True)
+def _flattened_rows(image: NDArray[np.float32], albedo: NDArray[np.float32], windows: NDArray[np.intp],
+                    floor: float, scale: float, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`normalise_lines` on the given `rows`: `image` over `albedo` ``(H, W)``, its flat field
+    (the mean under a triangle two of the line's windows long, mirrored at the ends, at least
+    `floor`, over `scale`) multiplied into `albedo` in place, and `image` over the product into
+    `out`."""
     w = image.shape[1]
     for y in rows:
-        t = min(windows[y], w // 2)
-        left = right = 0.0
-        for x in range(t):
-            left += image[y, x] / albedo[y, x]
-            right += image[y, w - t + x] / albedo[y, w - t + x]
-        # the log gain: 0 at the middle of the first window, log(right / left) at the last's,
-        # at most `MAX_LEVELLING` in all (a dark end cannot be levelled by a gentle ramp)
-        bound = max(left, right) / MAX_LEVELLING + 1e-12
-        slope = np.log(max(right, bound) / max(left, bound)) / max(w - t, 1)
-        gain, step = np.exp(-0.5 * t * slope), np.exp(slope)
+        t = max(1, min(windows[y], w - 1))
+        padded = np.empty(w + 2 * t)  # the line over its albedo, mirrored by t at both ends
+        for k in range(w + 2 * t):
+            x = k - t
+            x = -x - 1 if x < 0 else (2 * w - x - 1 if x >= w else x)
+            padded[k] = image[y, x] / albedo[y, x]
+        boxes = np.zeros(w + t + 2)  # boxes[i + 1] - boxes[i]: the sum of padded[i .. i + t - 1]
+        total = 0.0
+        for k in range(t):
+            total += padded[k]
+        for i in range(w + t + 1):
+            boxes[i + 1] = boxes[i] + total
+            if i + t < w + 2 * t:
+                total += padded[i + t] - padded[i]
+        norm = 1.0 / (t * t * scale)
         for x in range(w):
+            # the triangle at x: the t boxes starting at x + 1 .. x + t (weights t - |k - x - t|)
+            gain = max((boxes[x + t + 1] - boxes[x + 1]) * norm, floor / scale)
             a = np.float32(albedo[y, x] * gain)
             albedo[y, x] = a
             out[y, x] = image[y, x] / a
-            gain *= step
 
 
 def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
                     workers: int | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """A capture divided by its albedo for `demodulate_baseband` (see the module docstring):
-    `sliscan.demodulate.albedo_estimate` (``"steps"`` with `STEPS_OPTIONS`), times a log-linear
-    ramp per line that brings the means of the line's first and last windows (one carrier
-    spacing period) of the normalised capture to one level.
+    `sliscan.demodulate.albedo_estimate` (``"steps"`` with `STEPS_OPTIONS`) times each line's
+    flat field, the mean of the capture over it under a triangle two carrier spacing periods
+    long (zero on every multiple of the spacing: it passes the DC and no carrier), floored at
+    `FLAT_FLOOR` of the capture's bright level.
 
     Parameters
     ----------
@@ -186,14 +235,17 @@ def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate
     Returns
     -------
     (normalised, albedo) : two (H, W) float32 arrays
-        ``image / albedo`` and the albedo with its ramps (relative: its scale is arbitrary).
+        ``image / albedo`` (where lit, about the capture's bright level) and the albedo with
+        the flat field (relative: its scale is arbitrary).
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
     albedo = np.ascontiguousarray(albedo_estimate(img, carriers, estimate=estimate,
                                                   **(STEPS_OPTIONS if estimate == "steps" else {})))
     windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (img.shape[0],)), dtype=np.intp)
+    scale = max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty_like(img)
-    over_rows(lambda rows: _levelled_rows(img, albedo, windows, rows, out), img.shape[0], workers)
+    over_rows(lambda rows: _flattened_rows(img, albedo, windows, FLAT_FLOOR * scale, scale, rows, out), img.shape[0],
+              workers)
     return out, albedo
 
 
@@ -203,10 +255,11 @@ class Baseband:
 
     Attributes
     ----------
-    samples : (C + 1, H, L) float32 array
+    samples : (C + 1, H, L + 1) float32 array
         Channel 0 the DC, then each carrier's envelope (peak amplitude, image units), in
-        `Carriers.frequencies` order; sample ``m`` of a line describes pixel ``m * step`` (the
-        line is periodic: sample ``L`` is sample 0).
+        `Carriers.frequencies` order; sample ``m`` of a line describes pixel ``m * step``
+        (sample ``L`` the line's end), or within a window (`BasebandPlan.ends`) of either end
+        the pixel a window in.
     step : float
         Pixels between samples.
     albedo : (H, W) float32 array or None
@@ -223,18 +276,17 @@ class Baseband:
         `Demodulated` (residual 0: this demodulator fits no model to measure it by), multiplied
         back by `albedo` if there is one (image units; every ratio the decoder takes is the
         normalised capture's)."""
-        length = self.samples.shape[2]
         position = np.arange(width) / self.step
         low = np.floor(position).astype(np.intp)
         t = (position - low).astype(np.float32)
-        full = self.samples[:, :, low % length] * (1 - t) + self.samples[:, :, (low + 1) % length] * t
+        full = self.samples[:, :, low] * (1 - t) + self.samples[:, :, low + 1] * t
         if self.albedo is not None:
             full *= self.albedo[None]
         return Demodulated(amplitude=np.ascontiguousarray(full[1:]), dc=np.ascontiguousarray(full[0]),
                            residual=np.zeros(full.shape[1:], np.float32))
 
     def sampled_albedo(self) -> NDArray[np.float32] | None:
-        """`albedo` ``(H, L)`` at the pixels the samples describe (the nearest), or None."""
+        """`albedo` ``(H, L + 1)`` at the pixels ``m * step`` of the samples (the nearest), or None."""
         if self.albedo is None:
             return None
         columns = np.minimum(np.round(np.arange(self.samples.shape[2]) * self.step).astype(np.intp),
@@ -266,7 +318,9 @@ def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, albe
     shifts = plan.shifts
     over_rows(lambda rows: _gather_rows(spectrum, plan.starts, plan.gains, shifts, rows, bands), height, workers)
     signal = scipy.fft.ifft(bands, axis=2, workers=workers, overwrite_x=True)
-    samples = np.empty(bands.shape, np.float32)
-    samples[0] = signal[0].real
-    np.abs(signal[1:], out=samples[1:])
+    periodic = np.empty(bands.shape, np.float32)
+    periodic[0] = signal[0].real
+    np.abs(signal[1:], out=periodic[1:])
+    samples = np.empty((*bands.shape[:2], plan.length + 1), np.float32)
+    over_rows(lambda rows: _samples_rows(periodic, plan.step, plan.ends, plan.width, rows, samples), height, workers)
     return Baseband(samples=samples, step=plan.step, albedo=albedo)

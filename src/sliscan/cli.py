@@ -43,7 +43,7 @@ from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
-from sliscan.pipeline import DECISIONS, METHODS, Scanner, ScanStages, decision_options
+from sliscan.pipeline import DECISIONS, METHODS, Scanner, ScanStages, scanner_options
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
@@ -159,6 +159,11 @@ _decisions_option = click.option(
     help="Single-shot patterns: decide the stripes down each column by the order they come in (order; "
          "more complete, 2-3x slower to decode), each pixel from its own bits (pixel; faster), or auto "
          "(order for sliscan's patterns, pixel for the thesis's).")
+
+_albedo_steps_option = click.option(
+    "--albedo-steps/--no-albedo-steps", default=True, show_default=True,
+    help="Window and baseband demodulators: divide the capture by its sharp reflectance steps first (for "
+         "textured surfaces; baseband: and by its flat field), or not (faster).")
 
 _calibration_options = _options(
     click.option("--calibration", type=INPUT_FILE, help="Calibration JSON (DESIGN.md format)."),
@@ -902,7 +907,7 @@ class _ScanInputs:
 
 
 def _scan_inputs(files: list[Path], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
-                 projector_matrix: Path | None, *, method: str, decisions: str = "auto",
+                 projector_matrix: Path | None, *, method: str, decisions: str = "auto", albedo_steps: bool = True,
                  spec: PatternSpec | None = None) -> _ScanInputs:
     """Read and check what `sliscan scan` and `sliscan report` scan: the pattern (`spec` if
     already read), the frames (one for a composite pattern), the calibration (its camera of the
@@ -911,14 +916,14 @@ def _scan_inputs(files: list[Path], pattern_path: Path, calibration: Path | None
     if spec.kind not in MULTI_FRAME_KINDS and len(files) != 1:
         raise InputError(f"{pattern_path}: a {spec.kind} pattern takes one capture, got {len(files)}")
     with _about(pattern_path):
-        options = decision_options(spec, decisions)
+        options = scanner_options(spec, decisions, albedo_steps)
     frames = _read_frames(files)
     capture = str(files[0]) if len(files) == 1 else f"{files[0]} .. {files[-1]}"
     h, w = frames[0].shape
     calib, source = _scan_calibration(spec, pattern_path, (calibration, camera_matrix, projector_matrix), (w, h),
                                       capture)
     with _about(source):
-        scanner = Scanner(spec, calib, method=method, decode_options=options)
+        scanner = Scanner(spec, calib, method=method, **options)
     return _ScanInputs(files, frames, capture, pattern_path, spec, calib, source, scanner)
 
 
@@ -983,7 +988,8 @@ def _frames_progress(total: int) -> Iterator[Callable[[dict[str, Any]], None]]:
 
 
 def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, calibration: CalibrationArgs, *,
-                method: str, decisions: str, out: Path | None, formats: Sequence[str], workers: int | None,
+                method: str, decisions: str, albedo_steps: bool, out: Path | None, formats: Sequence[str],
+                workers: int | None,
                 scheduler: str | None, resume: bool, report: Path | None, overwrite: bool) -> int:
     """`sliscan scan` of a batch of single-shot frames (`sliscan.batch`), with its HTML `report`
     if asked; returns the exit status."""
@@ -1005,7 +1011,8 @@ def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, ca
     calib, source = _scan_calibration(spec, pattern_path, calibration, batch.first_frame_size(files)
                                       if calibration[0] is None else None, files[0])
     with _about(source):
-        job = batch.Job.create(spec, calib, method=method, formats=formats, decisions=decisions)
+        job = batch.Job.create(spec, calib, method=method, formats=formats, decisions=decisions,
+                               albedo_steps=albedo_steps)
     total = batch.count_frames(files)
     skip = (lambda index: batch.outputs_exist(out, index, job.formats)) if resume else (lambda index: False)
     with _frames_progress(total) as done, batch.dask_client(workers=workers, scheduler=scheduler) as client:
@@ -1071,6 +1078,7 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
               help="Demodulator: sliscan's sliding window, the thesis's Butterworth band-pass (3.4), or baseband: "
                    "the real-time path (decimated envelopes, per-pixel decisions; stripe patterns only).")
 @_decisions_option
+@_albedo_steps_option
 @click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
 @click.option("--report", type=OUTPUT_FILE,
               help="Also write an HTML report of every stage with a 3D view (needs sliscan[report]; see sliscan report); "
@@ -1088,8 +1096,9 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
 @_overwrite_option
 def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str, decisions: str, timings: bool, report: Path | None, out_dir: Path | None,
-         formats: tuple[str, ...], workers: int | None, scheduler: str | None, resume: bool, overwrite: bool) -> int:
+         method: str, decisions: str, albedo_steps: bool, timings: bool, report: Path | None,
+         out_dir: Path | None, formats: tuple[str, ...], workers: int | None, scheduler: str | None, resume: bool,
+         overwrite: bool) -> int:
     """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
     frames of a multi-frame pattern (pmp, graycode) in the order its JSON lists them, or a
     batch of single-shot frames.
@@ -1117,7 +1126,8 @@ def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Pat
             raise click.UsageError("a batch writes into --out DIR in the --format(s) asked for; "
                                    "--mat5, --ply, --npz and --timings are for one capture")
         return _scan_batch(files, spec, pattern_path, (calibration, camera_matrix, projector_matrix),
-                           method=method, decisions=decisions, out=out_dir, formats=formats or ("npz",),
+                           method=method, decisions=decisions, albedo_steps=albedo_steps, out=out_dir,
+                           formats=formats or ("npz",),
                            workers=workers, scheduler=scheduler, resume=resume, report=report, overwrite=overwrite)
     if batch_options:
         raise click.UsageError("--out, --format, --workers, --scheduler and --resume are for batches of "
@@ -1130,7 +1140,7 @@ def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Pat
         stage("read")
         t0 = time.perf_counter()
         inputs = _scan_inputs(files, pattern_path, calibration, camera_matrix, projector_matrix, method=method,
-                              decisions=decisions, spec=spec)
+                              decisions=decisions, albedo_steps=albedo_steps, spec=spec)
         frames, capture, scanner = inputs.frames, inputs.capture, inputs.scanner
         h, w = frames[0].shape
         stage("scan")
@@ -1645,6 +1655,7 @@ browser (needs sliscan[report]).""")
               help="Demodulator: sliscan's sliding window, the thesis's Butterworth band-pass (3.4), or baseband: "
                    "the real-time path (decimated envelopes, per-pixel decisions; stripe patterns only).")
 @_decisions_option
+@_albedo_steps_option
 @click.option("--truth", type=INPUT_FILE,
               help="Ground truth of a simulated capture (sliscan simulate --truth): adds the error against it.")
 @click.option("--residuals", type=INPUT_FILE,
@@ -1660,7 +1671,8 @@ browser (needs sliscan[report]).""")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="HTML file to write.")
 @_overwrite_option
 def report(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None,
-           camera_matrix: Path | None, projector_matrix: Path | None, method: str, decisions: str, truth: Path | None,
+           camera_matrix: Path | None, projector_matrix: Path | None, method: str, decisions: str, albedo_steps: bool,
+           truth: Path | None,
            residuals: Path | None, g_file: Path | None, pixels: bool, batch_summary: Path | None, max_points: int,
            output: Path, overwrite: bool) -> None:
     """Write one self-contained HTML report of a scan, a calibration or a batch.
@@ -1704,7 +1716,7 @@ def report(captures: tuple[Path, ...], pattern_path: Path | None, calibration: P
     with _progress(3) as stage:
         stage("read")
         inputs = _scan_inputs(files, pattern_path, calibration, camera_matrix, projector_matrix, method=method,
-                              decisions=decisions)
+                              decisions=decisions, albedo_steps=albedo_steps)
         ground = None if truth is None else evaluate.read_truth(truth, shape=inputs.frames[0].shape)
         t1 = time.perf_counter()
         stage("scan")

@@ -1,18 +1,18 @@
 """The real-time single-shot scan: baseband envelopes to points in one compiled pass (issue 6).
 
 `Scanner(method="baseband")` (``sliscan scan --method baseband``).  The capture is divided by
-its albedo steps (`sliscan.baseband.normalise_lines`, unless `Scanner.albedo` is None) and
-demodulated at baseband (`sliscan.baseband`: one transform per line, each envelope sampled
-every ~27 pixels), the frame's levels are read from those samples as `sliscan.decode.decode` reads them
-from full-size envelopes (`decode.FrameLevels`), and then one compiled loop over the pixels
-interpolates each pixel's DC and envelopes, decides its bits and stripe with `decode`'s
-per-pixel rules, and triangulates it.  The triangulation is a table: a stripe pattern's
-projector coordinate takes one value per stripe, so every camera row and stripe has its point
-as a ratio of two affine functions of the column (`Triangulator.line_table`), and the pixels
-where that point is a measurement (`sliscan.pipeline.measurable`) are one run of columns,
-found once per rig (`StripeGeometry`).  A rig with lens distortion has no such table (its
-camera rows are not lines): the pass decides its stripes and `Triangulator.measure` triangulates
-them.
+its albedo, the sharp steps and the flat field (`sliscan.baseband.normalise_lines`, unless
+`Scanner.albedo` is None), and demodulated at baseband (`sliscan.baseband`: one transform per
+line, each envelope sampled every ~27 pixels), the frame's levels are read from those samples
+as `sliscan.decode.decode` reads them from full-size envelopes (`decode.FrameLevels`), and then
+one compiled loop over the pixels interpolates each pixel's DC and envelopes, decides its bits
+and stripe with `decode`'s per-pixel rules, and triangulates it.  The triangulation is a table:
+a stripe pattern's projector coordinate takes one value per stripe, so every camera row and
+stripe has its point as a ratio of two affine functions of the column
+(`Triangulator.line_table`), and the pixels where that point is a measurement
+(`sliscan.pipeline.measurable`) are one run of columns, found once per rig
+(`StripeGeometry`).  A rig with lens distortion has no such table (its camera rows are not
+lines): the pass decides its stripes and `Triangulator.measure` triangulates them.
 
 What it leaves out, for speed: the window demodulator's other edge handling (see `sliscan.baseband`),
 the decisions by order, the border refinement, the neighbours' agreement and the 3D filters
@@ -216,7 +216,7 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
                 samples, line, i, i, np.float32(0), floor, lit_off, lit_gain, pilot, bit_off, bit_gain,
                 min_modulation, half_confidence)
         for i in range(length):
-            j = i + 1 if i + 1 < length else 0
+            j = min(i + 1, length - 1)  # the last sample (the line's end) describes no pixel after it
             if lits[i] == lits[j] == 0 and floored[i] == floored[j]:
                 segments[i] = -1  # unlit throughout, whatever the code
             elif (codes[i] == codes[j] and unclears[i] == unclears[j] and floored[i] == floored[j]
@@ -225,7 +225,7 @@ def _scan_lines(samples: NDArray[np.float32], step: float, transposed: bool, flo
             else:
                 segments[i] = -2
         for i in range(length):
-            high, s = i + 1 if i + 1 < length else 0, segments[i]
+            high, s = min(i + 1, length - 1), segments[i]
             start, stop = starts[i], starts[i + 1]
             if s != -2 and not transposed and (s < 0 or gaps[line, s] < 0):
                 # one decision and one run of measured columns: straight loops, coefficients read once

@@ -151,6 +151,22 @@ def decision_options(spec: PatternSpec, decisions: str) -> dict[str, Any]:
     return dict(DECISIONS[decisions])
 
 
+def scanner_options(spec: PatternSpec, decisions: str = "auto", albedo_steps: bool = True) -> dict[str, Any]:
+    """`Scanner` keyword arguments for the command line's choices: `decisions` one of
+    `DECISIONS` (`decision_options`); `albedo_steps` whether the window and baseband
+    demodulators divide the capture by its sharp reflectance steps first (``Scanner.albedo``
+    ``"steps"``, the default) or by nothing (None: the faster scan for surfaces without sharp
+    texture, README "Speed"; the band-pass demodulator and multi-frame patterns divide by
+    nothing either way).
+
+    Raises
+    ------
+    InputError
+        For an unknown or inapplicable `decisions`.
+    """
+    return dict(decode_options=decision_options(spec, decisions), albedo="steps" if albedo_steps else None)
+
+
 @dataclass(frozen=True, eq=False)
 class ScanStages:
     """What `Scanner.scan_stages` computed on the way to the points (for `sliscan.report`).
@@ -221,7 +237,7 @@ class Scanner:
         before demodulation (`sliscan.demodulate.normalise_albedo`; ``"steps"``, the default,
         the sharp reflectance steps, which no demodulation window can fit); None for none (the
         fastest baseband scan, for surfaces without sharp texture: README, "Speed").  The
-        baseband path levels each line's ends as well (`sliscan.baseband.normalise_lines`).
+        baseband path divides by each line's flat field as well (`sliscan.baseband.normalise_lines`).
 
     Examples
     --------
