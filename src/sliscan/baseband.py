@@ -39,11 +39,28 @@ levels the line's two ends).  On the 1296x972 and 960x720 smooth-albedo captures
 0.2-3 points of right stripes, on uniform albedo it lost 0.0-0.5, on the checker it changed
 nothing beyond 0.15 (README, "Speed", twentieth session).
 
+Next to a depth edge or a shadow border across the line, the centred window straddles it:
+the carriers' phases jump there and the envelopes mix both sides' codes.  The window
+demodulator then fits a one-sided window, where that explains the line better; here a sample
+likewise takes the window of the sample `ONE_SIDED_SHIFT` of a window to either side (rounded
+to whole samples: two at every rig measured) where that leaves less than `ONE_SIDED_GAIN` of
+the centred window's unexplained energy, and the least.  The unexplained energy is the line's
+mean square under the triangle (from running sums of its squares, one pass over the line)
+less the DC's square and half of each envelope's square: what the DC and the carriers do not
+explain (noise, the gamma's harmonics, and the phase jumps that lower the envelopes).  On the
+1296x972 (seed 3) and 960x720 (seed 5) captures of every scene, both patterns and both albedos
+it gained up to 4 points of right stripes (the smooth sphere 90.4 -> 93.0 and 91.5 -> 93.4 %,
+the checkered one 88.0 -> 91.7 and 87.1 -> 91.1 %, the smooth steps 92.5 -> 95.2 and 93.1 ->
+95.8 %) and 1-3 points of completeness, with fewer stripes more than one off but on the
+smooth sphere (0.43 -> 0.56 and 0.44 -> 0.59 %: across its limb); a shift of 0.75 window
+(three samples on some lines) gained 0.2-1 point more right stripes for more such stripes off
+(0.81 %), and candidates between the samples (interpolated) gained less and cost three times
+as much (README, "Speed", twentieth session).
+
 `demodulate_baseband` is the demodulator of `Scanner(method="baseband")`, whose decoding and
 triangulation then run in one compiled pass over the pixels (`sliscan.fastscan`).  It fits no
-window per pixel, so it has none of the window demodulator's other edge handling (one-sided
-windows next to depth and shadow edges, the misfit and noise estimates): it trades accuracy
-for speed (README, "Speed").
+model per pixel, so it has none of the window demodulator's misfit and noise estimates, and
+its one-sided windows are chosen per sample: it trades accuracy for speed (README, "Speed").
 """
 
 from __future__ import annotations
@@ -72,6 +89,12 @@ STEPS_OPTIONS: dict[str, bool] = {"both_ways": False}
 #: so its noise is not raised to the lit level.  A floor of 0.05 (a tenth of the bright DC)
 #: lost most of the flat field's gain on the smooth albedo (README, "Speed", twentieth session).
 FLAT_FLOOR = 0.01
+#: A sample takes the window `ONE_SIDED_SHIFT` of a window (the triangle's half-width, rounded
+#: to whole samples) to either side of its pixel instead of the centred one where that leaves
+#: less than `ONE_SIDED_GAIN` of the centred window's unexplained energy (see the module
+#: docstring; 0.75 and a gain of 0.3 or 0.7 were measured too).
+ONE_SIDED_SHIFT = 0.6
+ONE_SIDED_GAIN = 0.5
 
 
 def triangle_response(frequency: NDArray[np.float64], window: NDArray[np.float64] | float) -> NDArray[np.float64]:
@@ -162,23 +185,56 @@ def _gather_rows(spectrum: NDArray[np.complex64], starts: NDArray[np.int64], gai
 
 
 @numba.njit(cache=True, nogil=True)
-def _samples_rows(periodic: NDArray[np.float32], step: float, ends: NDArray[np.float64], width: int,
-                  rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+def _samples_rows(periodic: NDArray[np.float32], image: NDArray[np.float32], step: float, ends: NDArray[np.float64],
+                  one_sided: bool, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """`Baseband.samples` of the given rows from `periodic` ``(C + 1, H, L)`` (sample ``m`` at
     pixel ``m * step`` of the line taken as periodic) into `out` ``(C + 1, H, L + 1)``: sample
-    ``m`` at pixel ``m * step`` moved to within ``ends[y] .. width - 1 - ends[y]``, linearly
-    interpolated."""
-    channels, length = periodic.shape[0], periodic.shape[2]
+    ``m`` is the window centred on pixel ``m * step`` moved to within ``ends[y] .. W - 1 -
+    ends[y]`` (linear between the samples of `periodic`) or, if `one_sided`, that of the sample
+    `ONE_SIDED_SHIFT` of a window to either side (rounded to whole samples) where that leaves
+    less than `ONE_SIDED_GAIN` of the centred window's unexplained energy, and the least (see
+    the module docstring)."""
+    channels, length, width = periodic.shape[0], periodic.shape[2], image.shape[1]
+    sums = np.empty(width + 1)  # sums[j]: the sum over i < j of the squares before pixel i
+    unexplained, chosen = np.empty(length + 1), np.empty(length + 1, np.int64)
+    centred = np.empty(length + 1, np.float32)  # one channel's centred samples of a line
     for y in rows:
         low = min(ends[y], 0.5 * (width - 1))
         high = width - 1 - low
+        window = max(1, min(int(ends[y] + 0.5), width // 2))
+        reach = int(ONE_SIDED_SHIFT * ends[y] / step + 0.5)
+        squares = sums[0] = 0.0
+        if one_sided:
+            for x in range(width):
+                sums[x + 1] = sums[x] + squares
+                squares += np.float64(image[y, x]) * image[y, x]
         for m in range(length + 1):
-            at = min(max(m * step, low), high) / step
-            i = int(at)
-            t = np.float32(at - i)
+            position = min(max(m * step, low), high) / step
+            i = int(position)
+            t = np.float32(position - i)
             j = i + 1 if i + 1 < length else 0
+            explained = 0.0
             for c in range(channels):
-                out[c, y, m] = periodic[c, y, i] * (np.float32(1) - t) + periodic[c, y, j] * t
+                value = periodic[c, y, i] * (np.float32(1) - t) + periodic[c, y, j] * t
+                out[c, y, m] = value
+                explained += np.float64(value) * value if c == 0 else 0.5 * np.float64(value) * value
+            # the line's mean square under the triangle (the boxes of `window` squares starting
+            # at pixel - window + 1 .. pixel: weights window - |x - pixel|), less the explained
+            centre = min(max(int(position * step + 0.5), window - 1), width - 1 - window)
+            unexplained[m] = ((sums[centre + window + 1] - 2 * sums[centre + 1] + sums[centre - window + 1])
+                              / (window * window) - explained)
+        if not one_sided or reach == 0:
+            continue
+        for m in range(length + 1):
+            least, chosen[m] = unexplained[m], m
+            bound = ONE_SIDED_GAIN * least
+            for other in (m - reach, m + reach):
+                if 0 <= other <= length and unexplained[other] < bound and unexplained[other] < least:
+                    least, chosen[m] = unexplained[other], other
+        for c in range(channels):
+            centred[:] = out[c, y, :]
+            for m in range(length + 1):
+                out[c, y, m] = centred[chosen[m]]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -259,7 +315,8 @@ class Baseband:
         Channel 0 the DC, then each carrier's envelope (peak amplitude, image units), in
         `Carriers.frequencies` order; sample ``m`` of a line describes pixel ``m * step``
         (sample ``L`` the line's end), or within a window (`BasebandPlan.ends`) of either end
-        the pixel a window in.
+        the pixel a window in; each is the window centred there or a one-sided one's (see
+        the module docstring).
     step : float
         Pixels between samples.
     albedo : (H, W) float32 array or None
@@ -295,7 +352,7 @@ class Baseband:
 
 
 def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, albedo: NDArray[np.float32] | None = None,
-                        workers: int | None = None) -> Baseband:
+                        one_sided: bool = True, workers: int | None = None) -> Baseband:
     """The DC and every carrier's envelope of `image`, decimated (see the module docstring).
 
     Parameters
@@ -308,6 +365,9 @@ def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, albe
     albedo : (H, W) float32 array, optional
         The relative albedo `image` was divided by (`normalise_lines`), kept in the result
         (`Baseband.albedo`).
+    one_sided : bool
+        Whether a sample may take a one-sided window (see the module docstring); without, every
+        sample is its centred window's.
     workers : int, optional
         Threads of the transforms and the band gathering (default: `default_workers`).
     """
@@ -322,5 +382,6 @@ def demodulate_baseband(image: NDArray[np.floating], plan: BasebandPlan, *, albe
     periodic[0] = signal[0].real
     np.abs(signal[1:], out=periodic[1:])
     samples = np.empty((*bands.shape[:2], plan.length + 1), np.float32)
-    over_rows(lambda rows: _samples_rows(periodic, plan.step, plan.ends, plan.width, rows, samples), height, workers)
+    over_rows(lambda rows: _samples_rows(periodic, image, plan.step, plan.ends, one_sided, rows, samples), height,
+              workers)
     return Baseband(samples=samples, step=plan.step, albedo=albedo)

@@ -14,12 +14,13 @@ stripe has its point as a ratio of two affine functions of the column
 (`StripeGeometry`).  A rig with lens distortion has no such table (its camera rows are not
 lines): the pass decides its stripes and `Triangulator.measure` triangulates them.
 
-What it leaves out, for speed: the window demodulator's other edge handling (see `sliscan.baseband`),
-the decisions by order, the border refinement, the neighbours' agreement and the 3D filters
-(speckles, narrow runs); patterns with a phase channel are not supported (their stripes only
-unwrap the fringe).  The thesis's lit all-zero stripe, which needs a walk along the phase
-direction (`decode._zero_stripe`), is found after the pass, only for a pattern that projects
-that code (`zero_stripe`: 0.2-0.4 s at 5 MP).  Measured against the default (README, "Speed").
+What it leaves out, for speed: the window demodulator's misfit and noise estimates (its
+one-sided windows are chosen per sample, see `sliscan.baseband`), the decisions by order, the
+border refinement and the neighbours' agreement (the 3D filters, speckles and narrow runs, run
+after the pass when on, `Scanner`'s default); patterns with a phase channel are not supported (their stripes only unwrap the fringe).  The
+thesis's lit all-zero stripe, which needs a walk along the phase direction
+(`decode._zero_stripe`), is found after the pass, only for a pattern that projects that code
+(`zero_stripe`: 0.2-0.4 s at 5 MP).  Measured against the default (README, "Speed").
 """
 
 from __future__ import annotations
