@@ -233,10 +233,15 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     assert "stripe accuracy" in result.stdout and "thesis" in result.stdout and "best" in result.stdout
     out = tmp_path / "demo"
     assert (out / "rig.json").is_file()
+    mat5_files = [p.name for p in mat5.mat5_paths("sphere")]
     for name in ("thesis", "best"):
-        mat5_files = [p.name for p in mat5.mat5_paths("sphere")]
         for file in ["pattern.png", "pattern.json", "capture.png", "sphere.ply", *mat5_files]:
             assert (out / name / file).is_file(), f"{name}/{file}"
+    # the best pattern's capture through the real-time path too, its column last
+    header = next(line for line in result.stdout.splitlines() if "thesis" in line)
+    assert header.rstrip(" ┃│").endswith("best, baseband")
+    for file in ["sphere.ply", *mat5_files]:
+        assert (out / "baseband" / file).is_file(), f"baseband/{file}"
     ok("demo", "--camera", CAMERA_ARG, "--out", "demo", "--pattern", "best", cwd=tmp_path)  # again: replaces its files
 
 

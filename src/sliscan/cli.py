@@ -1580,7 +1580,9 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
     800 mm away, in front of a wall) under realistic conditions (smooth albedo 0.15-1, ambient
     10 %, uncorrected projector gamma 2.2, 1 px blur, shot and read noise, 8 bits), scans each
     capture, writes OUT/rig.json and per pattern OUT/NAME/{pattern.png, pattern.json,
-    capture.png, sphere mat5 files, sphere.ply}, and prints the accuracy against the ground truth.
+    capture.png, sphere mat5 files, sphere.ply}, with sliscan's best stripe pattern's capture
+    also through the real-time path (``--method baseband`` with its 3D filters: OUT/baseband/,
+    timed as the next frame of a stream), and prints the accuracy against the ground truth.
     Unlike the other commands it replaces its own files from an earlier run, so it can be run
     again into the same folder.
     """
@@ -1591,7 +1593,9 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
     conditions = _conditions(albedo="smooth", ambient=0.1, gamma=2.2, blur=1.0, noise=True,
                              supersample=supersample, seed=seed)
     results: dict[str, tuple[evaluate.Accuracy, float]] = {}
-    with _progress(4 * len(specs)) as stage:
+    baseband: dict[str, tuple[evaluate.Accuracy, float]] = {}  # its column last
+    folders = list(specs)
+    with _progress(4 * len(specs) + 2 * ("best" in specs)) as stage:
         for name, spec in specs.items():
             stage(f"{name}: render")
             capture = simulate.render(rig, scene, patterns.render_pattern(spec), conditions)
@@ -1606,10 +1610,22 @@ def demo(out: Path, camera: tuple[int, int], projector: tuple[int, int], which: 
             patterns.save_pattern(folder / "pattern.png", spec)
             write_image(folder / "capture.png", capture.image)
             _write_scan(result, mat5_prefix=folder / "sphere", ply=folder / "sphere.ply", npz=None)
+            if name == "best":  # the same frame through the real-time path, timed as a stream's next frame
+                stage("best: baseband scan")
+                scanner = Scanner(spec, rig.calibration, method="baseband")
+                scanner.scan(capture.image)  # the first frame finds the carriers and the rig's stripe table
+                t_scan = time.perf_counter()
+                result = scanner.scan(capture.image)
+                t_scan = time.perf_counter() - t_scan
+                baseband["best, baseband"] = (evaluate.accuracy(result, capture.truth, spec, rig.calibration), t_scan)
+                stage("best: write baseband")
+                _write_scan(result, mat5_prefix=out / "baseband" / "sphere", ply=out / "baseband" / "sphere.ply",
+                            npz=None)
+                folders.append("baseband")
         rig.calibration.save(out / "rig.json")
-    Console().print(_accuracy_table(results))
+    Console().print(_accuracy_table({**results, **baseband}))
     w, h = camera
-    click.echo(f"wrote {out}/rig.json and {', '.join(f'{out}/{n}/' for n in specs)}: {w}x{h} sphere demo "
+    click.echo(f"wrote {out}/rig.json and {', '.join(f'{out}/{n}/' for n in folders)}: {w}x{h} sphere demo "
                f"in {time.perf_counter() - t0:.1f} s")
 
 
