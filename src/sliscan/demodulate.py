@@ -638,13 +638,14 @@ def _ratio_less_steps(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], ke
 
 
 @numba.njit(cache=True, nogil=True)
-def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int, evidence: NDArray[np.float64],
-                   one_sided: NDArray[np.bool_]) -> None:
-    """Per pixel, the log step its two views agree on (0 where they do not), into `evidence`;
-    `one_sided` where only one view exists (within a window of the line's ends).
+def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int, least: float,
+                   evidence: NDArray[np.float64], one_sided: NDArray[np.bool_]) -> None:
+    """Per pixel, the log step its two views agree on (0 where they do not, or where it would
+    be under `least`: neither view reaches it), into `evidence`; `one_sided` where only one
+    view exists (within a window of the line's ends).
 
     A step of ``L`` at ``x`` changes the lag-``t`` ratio by ``+L`` at ``x`` and by ``-L`` at
-    ``x + t`` (`change`, valid where `usable`)."""
+    ``x + t`` (`change`, valid where `usable`, 0 elsewhere)."""
     w = change.size
     for x in range(w):
         here = change[x]
@@ -652,6 +653,8 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
         later = -change[x + t] if later_usable else 0.0
         one_sided[x] = usable[x] != later_usable
         evidence[x] = 0.0
+        if abs(here) < least and abs(later) < least:  # most pixels: no step to agree on
+            continue
         if usable[x] and later_usable:
             if here * later > 0 and min(abs(here), abs(later)) >= STEP_AGREEMENT * max(abs(here), abs(later)):
                 evidence[x] = 0.5 * (here + later)
@@ -677,18 +680,18 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
     found = np.empty(w, np.intp)
     for x in range(w):
         logs[x] = np.log(max(line[x], floor))
-    for x in range(w):
-        g = wt = 0.0
-        if x >= t:
-            wt = max(min(line[x], line[x - t]), floor)
-            g = wt * (logs[x] - logs[x - t])
-        cum_g[x + 1], cum_w[x + 1] = cum_g[x] + g, cum_w[x] + wt
+    sum_g = sum_w = 0.0  # the running sums (0 over the first window)
+    for x in range(t, w):
+        wt = max(min(line[x], line[x - t]), floor)
+        sum_g += wt * (logs[x] - logs[x - t])
+        sum_w += wt
+        cum_g[x + 1], cum_w[x + 1] = sum_g, sum_w
     for x in range(w):
         usable[x] = x - box >= t and x + box <= w
         change[x] = 0.0
         if usable[x]:
             change[x] = _ratio_mean(cum_g, cum_w, x, x + box) - _ratio_mean(cum_g, cum_w, x - box, x)
-    _step_evidence(change, usable, t, evidence, one_sided)
+    _step_evidence(change, usable, t, STEP_FIND * threshold, evidence, one_sided)
     n_found = 0  # the largest evidence within a box on either side, one per box
     for x in range(w):
         s = abs(evidence[x])
