@@ -218,11 +218,12 @@ def _samples_rows(periodic: NDArray[np.float32], image: NDArray[np.float32], ste
                 value = periodic[c, y, i] * (np.float32(1) - t) + periodic[c, y, j] * t
                 out[c, y, m] = value
                 explained += np.float64(value) * value if c == 0 else 0.5 * np.float64(value) * value
-            # the line's mean square under the triangle (the boxes of `window` squares starting
-            # at pixel - window + 1 .. pixel: weights window - |x - pixel|), less the explained
-            centre = min(max(int(position * step + 0.5), window - 1), width - 1 - window)
-            unexplained[m] = ((sums[centre + window + 1] - 2 * sums[centre + 1] + sums[centre - window + 1])
-                              / (window * window) - explained)
+            if one_sided:
+                # the line's mean square under the triangle (the boxes of `window` squares starting
+                # at pixel - window + 1 .. pixel: weights window - |x - pixel|), less the explained
+                centre = min(max(int(position * step + 0.5), window - 1), width - 1 - window)
+                unexplained[m] = ((sums[centre + window + 1] - 2 * sums[centre + 1] + sums[centre - window + 1])
+                                  / (window * window) - explained)
         if not one_sided or reach == 0:
             continue
         for m in range(length + 1):
