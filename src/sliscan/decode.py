@@ -85,29 +85,51 @@ def two_means(values: NDArray[np.floating], *, iterations: int = 20) -> tuple[fl
     [0.0, 1.0]
     """
     v = np.asarray(values).ravel()
-    v = v[np.isfinite(v)]
-    if v.size == 0:
+    # sorted once, by numpy (in the samples' own dtype: the conversion keeps the order)
+    return _sorted_two_means(np.sort(v[np.isfinite(v)]).astype(np.float64), iterations)
+
+
+#: `two_means`' clipping and starting percentiles (numpy's "linear" method).
+_PERCENTILES = np.array([0.5, 5, 95, 99.5]) / 100
+
+
+@numba.njit(cache=True, nogil=True)
+def _sorted_two_means(v: NDArray[np.float64], iterations: int) -> tuple[float, float]:
+    """`two_means` of sorted finite values, compiled (in place): each cluster is a slice and its
+    median a middle element, and clipping keeps the order; the percentiles are numpy's (linear
+    interpolation, same arithmetic), so the centres are ``np.percentile``'s and ``np.median``'s
+    to the last bit."""
+    n = v.size
+    if n == 0:
         return 0.0, 1.0
-    # sorted once (in the samples' own dtype: the conversion keeps the order), so each cluster
-    # is a slice and its median a middle element, and clipping keeps the order
-    v = np.sort(v).astype(np.float64)
-    floor, lo, hi, top = (float(q) for q in np.percentile(v, [0.5, 5, 95, 99.5]))
-    v = np.clip(v, floor, top)  # a few wild values cannot own a cluster
+    q = np.empty(4)
+    for k in range(4):
+        at = (n - 1) * _PERCENTILES[k]  # numpy's virtual index
+        below = int(np.floor(at))
+        if at >= n - 1:
+            q[k] = v[n - 1]
+            continue
+        a, b, t = v[below], v[below + 1], at - below
+        q[k] = b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t
+    floor, lo, hi, top = q[0], q[1], q[2], q[3]
+    for i in range(n):  # a few wild values cannot own a cluster
+        v[i] = min(max(v[i], floor), top)
     for _ in range(iterations):
-        split = int(np.searchsorted(v, 0.5 * (lo + hi), side="left"))
-        if split == 0 or split == v.size:
+        split = np.searchsorted(v, 0.5 * (lo + hi))
+        if split == 0 or split == n:
             break
-        new = _sorted_median(v[:split]), _sorted_median(v[split:])
-        if new == (lo, hi):
+        new_lo, new_hi = _sorted_median(v[:split]), _sorted_median(v[split:])
+        if new_lo == lo and new_hi == hi:
             break
-        lo, hi = new
+        lo, hi = new_lo, new_hi
     return lo, hi
 
 
+@numba.njit(cache=True, inline="always")
 def _sorted_median(a: NDArray[np.float64]) -> float:
     """Median of a sorted non-empty 1-D array (equal to ``np.median``)."""
     middle = a.size // 2
-    return float(a[middle]) if a.size % 2 else float((a[middle - 1] + a[middle]) / 2)
+    return a[middle] if a.size % 2 else (a[middle - 1] + a[middle]) / 2
 
 
 #: Samples per clustering from which `_Scale.of` clusters the carriers in threads.
@@ -140,8 +162,9 @@ class _Scale:
         grid = mask[::step, ::step]
         ref = reference[::step, ::step][grid]
         ratios = [amplitude[n, ::step, ::step][grid] / ref for n in carriers]
-        # two_means is many short numpy calls: in threads they wait on each other's GIL until
-        # the sorts dominate (4 of 8k samples: 1.0 ms in turn, 1.2 ms in two threads)
+        # in threads the clusterings wait on each other's GIL (numpy's sorts hold it) until the
+        # samples are many (4 of 8k samples: 1.0 ms in turn, 1.2 ms in two threads, measured when
+        # two_means was all numpy calls; 4x faster since its loop is compiled)
         clusters = in_parallel(two_means, ratios, None if ref.size >= PARALLEL_CLUSTERING else 1)
         return cls(off=np.array([off for off, _ in clusters], dtype=np.float32),
                    span=np.array([max(on - off, 1e-6) for off, on in clusters]))
@@ -156,22 +179,22 @@ def dark_level(dc: NDArray[np.float32]) -> float:
 
 @numba.njit(cache=True, nogil=True)
 def _lit_rows(amplitude: NDArray[np.float32], carriers: NDArray[np.intp], dc: NDArray[np.float32],
-              scale_off: NDArray[np.float32], scale_span: NDArray[np.float64], min_modulation: np.float32,
+              scale_off: NDArray[np.float32], inv_span: NDArray[np.float64], min_modulation: np.float32,
               noise: NDArray[np.float32], snr_factor: np.float32, rows: NDArray[np.intp], lit: NDArray[np.bool_]) -> None:
-    """`_lit` for the given rows; `noise` of shape (0, 0) when there is none."""
+    """`_lit` for the given rows (`inv_span`: one over the scale's spans); `noise` of shape
+    (0, 0) when there is none.  Carriers outside, columns inside, so the column loops
+    vectorise (2.3x faster than pixel by pixel, the same mask)."""
     with_noise = noise.shape[0] > 0
+    strongest, top = np.empty(dc.shape[1], np.float32), np.empty(dc.shape[1], np.float32)
     for y in rows:
+        strongest[:], top[:] = -np.inf, -np.inf
+        for i in range(carriers.size):
+            a, off, gain = amplitude[carriers[i], y], np.float64(scale_off[i]), inv_span[i]
+            for x in range(dc.shape[1]):
+                strongest[x] = max(strongest[x], np.float32((np.float64(a[x] / dc[y, x]) - off) * gain))
+                top[x] = max(top[x], a[x])
         for x in range(dc.shape[1]):
-            strongest, top = np.float32(-np.inf), np.float32(-np.inf)
-            for i in range(carriers.size):
-                a = amplitude[carriers[i], y, x]
-                level = np.float32(np.float64(a / dc[y, x] - scale_off[i]) / scale_span[i])
-                strongest = max(strongest, level)
-                top = max(top, a)
-            ok = strongest >= min_modulation
-            if with_noise:
-                ok = ok and top >= snr_factor * noise[y, x]
-            lit[y, x] = ok
+            lit[y, x] = strongest[x] >= min_modulation and (not with_noise or top[x] >= snr_factor * noise[y, x])
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,7 +255,8 @@ def _lit(demod: Demodulated, dc: NDArray[np.float32], carriers: NDArray[np.intp]
     """
     lit = np.empty(dc.shape, dtype=bool)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
-    over_rows(lambda rows: _lit_rows(demod.amplitude, carriers, dc, scale.off, scale.span, np.float32(min_modulation),
+    inv_span = 1 / scale.span
+    over_rows(lambda rows: _lit_rows(demod.amplitude, carriers, dc, scale.off, inv_span, np.float32(min_modulation),
                                      noise, np.float32(2 * min_snr), rows, lit), dc.shape[0])
     return lit
 
