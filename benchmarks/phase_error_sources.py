@@ -1,0 +1,123 @@
+"""Where the phase channel's error comes from (issue 8): one factor of the capture at a time.
+
+On the virtual rig's sphere scene (the sphere in front of a plane at 1000 mm), sliscan's
+pattern with the phase channel (`patterns.phase_spec`) is rendered under the accuracy
+benchmark's realistic conditions, then with one factor removed at a time (noise, blur, the
+smooth albedo), then with all of them and the projector's gamma and the ambient light removed
+("ideal"), and the plane alone under the ideal conditions.  Two decoders of the ideal sphere
+scene ask what is left: the carriers detected on the plane alone (kept by a
+`Scanner(reuse_carriers=True)`, so the background is demodulated at its own carrier
+frequencies), and the capture demodulated in `--tiles` strips of columns, each with the
+carriers detected in it.  For each: the error of the decoded projector line (`proj_map`
+against the truth's, in projector lines; RMS over the pixels more than 50 px from any depth
+or shadow edge and less than 10 lines off, on the sphere and on the background apart) and
+the median 3D error of the whole scan.
+
+    python benchmarks/phase_error_sources.py                       # 1296x972, ~1 min
+    python benchmarks/phase_error_sources.py --camera 2592x1944    # the thesis's size, ~5 min
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import scipy.ndimage
+
+from sliscan import fringe, patterns, simulate
+from sliscan.decode import decode
+from sliscan.demodulate import demodulate, detect_carriers
+from sliscan.evaluate import accuracy
+from sliscan.pipeline import Scanner
+
+sys.path.insert(0, str(Path(__file__).parent))
+from accuracy import conditions  # noqa: E402
+
+PROJECTOR = (1024, 768)
+#: Pixels nearer than this (camera pixels) to a depth or shadow edge are left out of the line RMS.
+EDGE_DISTANCE = 50
+
+
+def ideal(base: simulate.Conditions) -> simulate.Conditions:
+    """`base` without noise, quantisation, blur, albedo texture, gamma and ambient light."""
+    return dataclasses.replace(base, full_well_e=None, read_noise_e=0.0, bit_depth=None, projector_blur_px=0.0,
+                               camera_blur_px=0.0, albedo=simulate.UniformAlbedo(0.8), projector_gamma=1.0,
+                               ambient=0.0)
+
+
+def tiled_lines(scanner: Scanner, image: np.ndarray, tiles: int) -> np.ndarray:
+    """The scanner's decoded projector lines (``(H, W)``, NaN where none) with the capture
+    demodulated in `tiles` strips of columns (rows orientation), each strip two windows wider
+    on both sides and demodulated with the carriers detected in it."""
+    spec = scanner.spec
+    demod, carriers = demodulate(image, spec)
+    width, pad = image.shape[1], 2 * int(carriers.window)
+    edges = np.linspace(0, width, tiles + 1).astype(int)
+    for first, last in zip(edges[:-1], edges[1:]):
+        a, b = max(0, first - pad), min(width, last + pad)
+        strip = np.ascontiguousarray(image[:, a:b])
+        part, _ = demodulate(strip, spec, carriers=detect_carriers(strip, spec))
+        for field in dataclasses.fields(demod):
+            whole, piece = getattr(demod, field.name), getattr(part, field.name)
+            if whole is not None and piece is not None:
+                whole[..., first:last] = piece[..., first - a:last - a]
+    decoded = fringe.refine(decode(demod, spec, **scanner.decode_options), demod, carriers, spec,
+                            **scanner.fringe_options)
+    return np.where(decoded.valid, decoded.proj_map, np.nan)
+
+
+def line_errors(lines: np.ndarray, truth: simulate.GroundTruth) -> tuple[float, float]:
+    """RMS line error (projector lines) on the sphere's and the background's inner pixels."""
+    error = lines - truth.proj[..., 1]
+    inner = scipy.ndimage.distance_transform_edt(truth.lit & ~truth.edge) > EDGE_DISTANCE
+    kept = np.isfinite(error) & inner & (np.abs(error) < 10)
+    sphere = truth.points[..., 2] < 990  # the background plane is at 1000 mm
+    return tuple(float(np.sqrt(np.mean(error[kept & part] ** 2))) if (kept & part).any() else float("nan")
+                 for part in (sphere, ~sphere))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--camera", default="1296x972")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tiles", type=int, default=4)
+    args = parser.parse_args()
+    camera = tuple(int(v) for v in args.camera.split("x"))
+    rig = simulate.virtual_rig(camera_size=camera, projector_size=PROJECTOR)
+    spec = patterns.phase_spec(PROJECTOR)
+    pattern = patterns.render_pattern(spec)
+    realistic = conditions("smooth", args.seed)
+    cases = {"realistic": realistic,
+             "no noise": dataclasses.replace(realistic, full_well_e=None, read_noise_e=0.0, bit_depth=None),
+             "no blur": dataclasses.replace(realistic, projector_blur_px=0.0, camera_blur_px=0.0),
+             "uniform albedo": dataclasses.replace(realistic, albedo=simulate.UniformAlbedo(0.8)),
+             "ideal": ideal(realistic)}
+    print(f"{'capture, decoder':42s} {'sphere rms':>10s} {'background rms':>14s} {'median mm':>9s}  (lines)")
+    sphere_scene = simulate.sphere_scene()
+    captures = {}
+    for name, conds in cases.items():
+        captures[name] = capture = simulate.render(rig, sphere_scene, pattern, conds)
+        result = Scanner(spec, rig.calibration).scan(capture.image)
+        sphere, background = line_errors(np.where(result.valid, result.proj_map, np.nan), capture.truth)
+        median = accuracy(result, capture.truth, spec, rig.calibration).median_mm
+        print(f"{name:42s} {sphere:10.3f} {background:14.3f} {median:9.3f}", flush=True)
+    plane = simulate.render(rig, simulate.plane_scene(distance_mm=1000.0), pattern, ideal(realistic))
+    result = Scanner(spec, rig.calibration).scan(plane.image)
+    print(f"{'ideal, the plane alone':42s} {'-':>10s} {line_errors(result.proj_map, plane.truth)[1]:14.3f} "
+          f"{accuracy(result, plane.truth, spec, rig.calibration).median_mm:9.3f}")
+    capture = captures["ideal"]
+    scanner = Scanner(spec, rig.calibration, reuse_carriers=True)
+    scanner.scan(plane.image)  # keeps the plane's carriers for the next frame
+    result = scanner.scan(capture.image)
+    sphere, background = line_errors(np.where(result.valid, result.proj_map, np.nan), capture.truth)
+    print(f"{'ideal, carriers detected on the plane':42s} {sphere:10.3f} {background:14.3f}")
+    sphere, background = line_errors(tiled_lines(Scanner(spec, rig.calibration), capture.image, args.tiles),
+                                     capture.truth)
+    print(f"{f'ideal, carriers detected in {args.tiles} strips':42s} {sphere:10.3f} {background:14.3f}")
+
+
+if __name__ == "__main__":
+    main()
