@@ -183,15 +183,15 @@ def _lit_rows(amplitude: NDArray[np.float32], carriers: NDArray[np.intp], dc: ND
               noise: NDArray[np.float32], snr_factor: np.float32, rows: NDArray[np.intp], lit: NDArray[np.bool_]) -> None:
     """`_lit` for the given rows (`inv_span`: one over the scale's spans); `noise` of shape
     (0, 0) when there is none.  Carriers outside, columns inside, so the column loops
-    vectorise (2.3x faster than pixel by pixel, the same mask)."""
+    vectorise (1.8x faster than pixel by pixel, the same mask)."""
     with_noise = noise.shape[0] > 0
     strongest, top = np.empty(dc.shape[1], np.float32), np.empty(dc.shape[1], np.float32)
     for y in rows:
         strongest[:], top[:] = -np.inf, -np.inf
         for i in range(carriers.size):
-            a, off, gain = amplitude[carriers[i], y], np.float64(scale_off[i]), inv_span[i]
-            for x in range(dc.shape[1]):
-                strongest[x] = max(strongest[x], np.float32((np.float64(a[x] / dc[y, x]) - off) * gain))
+            a, off, gain = amplitude[carriers[i], y], scale_off[i], inv_span[i]
+            for x in range(dc.shape[1]):  # decode's arithmetic: the ratio less the off level in float32
+                strongest[x] = max(strongest[x], np.float32(np.float64(a[x] / dc[y, x] - off) * gain))
                 top[x] = max(top[x], a[x])
         for x in range(dc.shape[1]):
             lit[y, x] = strongest[x] >= min_modulation and (not with_noise or top[x] >= snr_factor * noise[y, x])
