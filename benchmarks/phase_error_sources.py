@@ -101,7 +101,7 @@ def main() -> None:
     for name, conds in cases.items():
         captures[name] = capture = simulate.render(rig, sphere_scene, pattern, conds)
         result = Scanner(spec, rig.calibration).scan(capture.image)
-        sphere, background = line_errors(np.where(result.valid, result.proj_map, np.nan), capture.truth)
+        sphere, background = line_errors(result.proj_map, capture.truth)
         median = accuracy(result, capture.truth, spec, rig.calibration).median_mm
         print(f"{name:42s} {sphere:10.3f} {background:14.3f} {median:9.3f}", flush=True)
     plane = simulate.render(rig, simulate.plane_scene(distance_mm=1000.0), pattern, ideal(realistic))
@@ -112,7 +112,7 @@ def main() -> None:
     scanner = Scanner(spec, rig.calibration, reuse_carriers=True)
     scanner.scan(plane.image)  # keeps the plane's carriers for the next frame
     result = scanner.scan(capture.image)
-    sphere, background = line_errors(np.where(result.valid, result.proj_map, np.nan), capture.truth)
+    sphere, background = line_errors(result.proj_map, capture.truth)
     print(f"{'ideal, carriers detected on the plane':42s} {sphere:10.3f} {background:14.3f}")
     sphere, background = line_errors(tiled_lines(Scanner(spec, rig.calibration), capture.image, args.tiles),
                                      capture.truth)
