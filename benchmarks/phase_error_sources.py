@@ -8,13 +8,21 @@ smooth albedo), then with all of them and the projector's gamma and the ambient 
 scene ask what is left: the carriers detected on the plane alone (kept by a
 `Scanner(reuse_carriers=True)`, so the background is demodulated at its own carrier
 frequencies), and the capture demodulated in `--tiles` strips of columns, each with the
-carriers detected in it.  For each: the error of the decoded projector line (`proj_map`
-against the truth's, in projector lines; RMS over the pixels more than 50 px from any depth
-or shadow edge and less than 10 lines off, on the sphere and on the background apart) and
-the median 3D error of the whole scan.
+carriers detected in it.  Then the realistic capture once more, to locate the smooth
+albedo's part (the largest single factor at 5 MP): divided by the true albedo, and by the
+true albedo smoothed over one demodulation window along the carriers or along the phase
+direction (`divided_by_albedo`), which tells which direction's albedo detail costs; and
+decoded with the phase carriers' envelopes refitted by a reference of the window fit that
+solves the carriers' couplings exactly (the compiled fit neglects them; `exact_envelopes`),
+without and with a correction for an albedo ramp common to all carriers in the window (the
+fit's DC ramp, which the carriers share, leaks into their neighbours).  For each: the error
+of the decoded projector line (`proj_map` against the truth's, in projector lines; RMS over
+the pixels more than 50 px from any depth or shadow edge and less than 10 lines off, on the
+sphere and on the background apart) and, for the first rows, the median 3D error of the
+whole scan.
 
     python benchmarks/phase_error_sources.py                       # 1296x972, ~1 min
-    python benchmarks/phase_error_sources.py --camera 2592x1944    # the thesis's size, ~5 min
+    python benchmarks/phase_error_sources.py --camera 2592x1944    # the thesis's size, ~7 min
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ import scipy.ndimage
 
 from sliscan import fringe, patterns, simulate
 from sliscan.decode import decode
-from sliscan.demodulate import demodulate, detect_carriers
+from sliscan.demodulate import Carriers, Demodulated, demodulate, detect_carriers, flat_field, normalise_albedo
 from sliscan.evaluate import accuracy
 from sliscan.pipeline import Scanner
 
@@ -67,6 +75,57 @@ def tiled_lines(scanner: Scanner, image: np.ndarray, tiles: int) -> np.ndarray:
     decoded = fringe.refine(decode(demod, spec, **scanner.decode_options), demod, carriers, spec,
                             **scanner.fringe_options)
     return np.where(decoded.valid, decoded.proj_map, np.nan)
+
+
+def divided_by_albedo(image: np.ndarray, albedo: np.ndarray, length: int, axis: int | None) -> np.ndarray:
+    """`image` ``(H, W)`` over the true `albedo` (0 where no surface: left alone), the log
+    albedo first averaged over `length` pixels along `axis` (None: not smoothed)."""
+    log_albedo = np.log(np.where(albedo > 0, albedo, 1.0).astype(np.float64))
+    if axis is not None:
+        log_albedo = scipy.ndimage.uniform_filter1d(log_albedo, length, axis=axis)
+    return (image / np.exp(log_albedo)).astype(np.float32)
+
+
+def exact_envelopes(image: np.ndarray, demod: Demodulated, carriers: Carriers, channels: range, *,
+                    albedo_ramp: bool) -> Demodulated:
+    """`demod` (the window demodulator's, rows orientation) with the envelopes of `channels`
+    refitted: every window start of every line by the exact least-squares fit of a DC, a ramp
+    and the carriers (the pseudo-inverse of the window's design matrix, so the carriers'
+    couplings, which the compiled fit neglects, are solved), at the window placement `demod`
+    chose for the pixel (`Demodulated.offset`), on the capture divided by its albedo steps as
+    `demodulate_window` divides it.  A slow numpy reference, for measuring.
+
+    With `albedo_ramp`, the albedo is taken to vary across the window as ``1 + rho t`` for
+    every carrier alike, ``rho`` the fitted ramp over the fitted DC: each carrier's ramp
+    ``rho t c_m`` projects onto the others' coefficients through a known matrix, which two
+    fixed-point rounds take out."""
+    normalised, gain = normalise_albedo(image, carriers)
+    lines = normalised.astype(np.float64)
+    height, width = lines.shape
+    omegas = 2 * np.pi * carriers.line_frequencies(slice(0, height))
+    windows = np.broadcast_to(carriers.line_windows(), (height,))
+    amplitude = demod.amplitude.copy()
+    for y in range(height):
+        length, omega = int(windows[y]), omegas[y]
+        flat = np.maximum(flat_field(lines[y], length), 1e-4)
+        j = np.arange(length)
+        t = j - (length - 1) / 2
+        waves = np.column_stack([f(w * j) for w in omega for f in (np.cos, np.sin)])
+        inverse = np.linalg.pinv(np.column_stack([np.ones(length), t, waves]))
+        fits = np.lib.stride_tricks.sliding_window_view(lines[y] / flat, length) @ inverse.T  # (starts, 2 + 2C)
+        coefficients = fits[:, 2:]
+        if albedo_ramp:
+            rho = fits[:, 1] / np.maximum(fits[:, 0], 1e-6)
+            leak = (inverse @ (t[:, None] * waves))[2:]  # (2C, 2C): ramped carriers seen as coefficients
+            fitted = coefficients.copy()
+            for _ in range(2):
+                coefficients = fitted - rho[:, None] * (coefficients @ leak.T)
+        pairs = coefficients.reshape(len(fits), omega.size, 2)
+        magnitude = np.hypot(pairs[..., 0], pairs[..., 1])
+        start = np.clip(np.round(np.arange(width) + demod.offset[y] - (length - 1) / 2).astype(int), 0, width - length)
+        for channel in channels:
+            amplitude[channel, y] = magnitude[start, channel] * flat * gain[y]
+    return dataclasses.replace(demod, amplitude=amplitude)
 
 
 def line_errors(lines: np.ndarray, truth: simulate.GroundTruth) -> tuple[float, float]:
@@ -117,6 +176,22 @@ def main() -> None:
     sphere, background = line_errors(tiled_lines(Scanner(spec, rig.calibration), capture.image, args.tiles),
                                      capture.truth)
     print(f"{f'ideal, carriers detected in {args.tiles} strips':42s} {sphere:10.3f} {background:14.3f}")
+    capture, scanner = captures["realistic"], Scanner(spec, rig.calibration)
+    demod, carriers = scanner.demodulate(capture.image)
+    window = int(carriers.window)
+    for name, axis in (("realistic / true albedo", None), ("realistic / albedo smoothed along carriers", 1),
+                       ("realistic / albedo smoothed along phase", 0)):
+        result = scanner.scan(divided_by_albedo(capture.image, capture.truth.albedo, window, axis))
+        sphere, background = line_errors(result.proj_map, capture.truth)
+        print(f"{name:42s} {sphere:10.3f} {background:14.3f}", flush=True)
+    decoded = decode(demod, spec, **scanner.decode_options)
+    channels = range(spec.bits, spec.bits + len(spec.phase_carriers))
+    for name, ramp in (("realistic, window fit solved exactly", False),
+                       ("realistic, exactly and the albedo ramp", True)):
+        refitted = exact_envelopes(capture.image, demod, carriers, channels, albedo_ramp=ramp)
+        lines = fringe.refine(decoded, refitted, carriers, spec, **scanner.fringe_options).proj_map
+        sphere, background = line_errors(lines, capture.truth)
+        print(f"{name:42s} {sphere:10.3f} {background:14.3f}", flush=True)
 
 
 if __name__ == "__main__":

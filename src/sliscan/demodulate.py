@@ -317,7 +317,7 @@ def _cumsum0(values: NDArray) -> NDArray:
 
 
 @numba.njit(cache=True)
-def _flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
+def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     """Local mean of each pixel over the box of one window, ending at, centred on or starting
     at the pixel.  The centred box (unbiased on a smooth albedo gradient) is kept unless a
     one-sided box varies much less relative to its mean (`FLAT_GAIN`): then the centred
@@ -404,7 +404,7 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
     width, n_carriers = line.size, omega.size
     x = np.arange(width)
     raw = line.astype(np.float64)
-    flat = np.maximum(_flat_field(raw, window), 1e-4)
+    flat = np.maximum(flat_field(raw, window), 1e-4)
     block = raw / flat
     phasors = _phasors(omega, width)
     cum_i, cum_i2, cum_xi = _cumsum0(block), _cumsum0(block * block), _cumsum0(block * x)
