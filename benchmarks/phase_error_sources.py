@@ -9,7 +9,7 @@ scene ask what is left: the carriers detected on the plane alone (kept by a
 `Scanner(reuse_carriers=True)`, so the background is demodulated at its own carrier
 frequencies), and the capture demodulated in `--tiles` strips of columns, each with the
 carriers detected in it.  Then the realistic capture once more, to locate the smooth
-albedo's part (the largest single factor at 5 MP): divided by the true albedo, and by the
+albedo's part (the uniform-albedo row gains the most at 5 MP): divided by the true albedo, and by the
 true albedo smoothed over one demodulation window along the carriers or along the phase
 direction (`divided_by_albedo`), which tells which direction's albedo detail costs; and
 decoded with the phase carriers' envelopes refitted by a reference of the window fit that
@@ -196,7 +196,7 @@ def main() -> None:
     # Each row keeps its own pixels (noise, for one, changes which pass the decoder's tests), so
     # the rows above differ by their pixel sets too; the same on the pixels every row kept:
     common = np.logical_and.reduce([np.isfinite(lines) for lines in scene_lines.values()])
-    print(f"\non the {common.mean():.1%} of the pixels that every sphere-scene row kept:")
+    print(f"\non the pixels that every sphere-scene row kept ({common.mean():.1%} of the frame):")
     for name, lines in scene_lines.items():
         sphere, background = line_errors(np.where(common, lines, np.nan), capture.truth)
         print(f"{name:42s} {sphere:10.3f} {background:14.3f}")
