@@ -141,6 +141,12 @@ def line_errors(lines: np.ndarray, truth: simulate.GroundTruth) -> tuple[float, 
                  for part in (sphere, ~sphere))
 
 
+def print_row(name: str, lines: np.ndarray, truth: simulate.GroundTruth) -> None:
+    """One table row: `name` and the `line_errors` of `lines` on the sphere and the background."""
+    sphere, background = line_errors(lines, truth)
+    print(f"{name:42s} {sphere:10.3f} {background:14.3f}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--camera", default="1296x972")
@@ -178,39 +184,34 @@ def main() -> None:
     scene_lines[f"ideal, carriers detected in {args.tiles} strips"] = tiled_lines(Scanner(spec, rig.calibration),
                                                                                 capture.image, args.tiles)
     for name in list(scene_lines)[-2:]:
-        sphere, background = line_errors(scene_lines[name], capture.truth)
-        print(f"{name:42s} {sphere:10.3f} {background:14.3f}")
+        print_row(name, scene_lines[name], capture.truth)
     capture, scanner = captures["realistic"], Scanner(spec, rig.calibration)
     demod, carriers = scanner.demodulate(capture.image)
     window = int(carriers.window)
     for name, axis in (("realistic / true albedo", None), ("realistic / albedo smoothed along carriers", 1),
                        ("realistic / albedo smoothed along phase", 0)):
         scene_lines[name] = scanner.scan(divided_by_albedo(capture.image, capture.truth.albedo, window, axis)).proj_map
-        sphere, background = line_errors(scene_lines[name], capture.truth)
-        print(f"{name:42s} {sphere:10.3f} {background:14.3f}", flush=True)
+        print_row(name, scene_lines[name], capture.truth)
     decoded = decode(demod, spec, **scanner.decode_options)
     channels = range(spec.bits, spec.bits + len(spec.phase_carriers))
     for name, ramp in (("realistic, window fit solved exactly", False),
                        ("realistic, exactly and the albedo ramp", True)):
         refitted = exact_envelopes(capture.image, demod, carriers, channels, albedo_ramp=ramp)
         scene_lines[name] = fringe.refine(decoded, refitted, carriers, spec, **scanner.fringe_options).proj_map
-        sphere, background = line_errors(scene_lines[name], capture.truth)
-        print(f"{name:42s} {sphere:10.3f} {background:14.3f}", flush=True)
+        print_row(name, scene_lines[name], capture.truth)
     centred = demodulate_window(capture.image, carriers, adaptive=False)
     envelopes = demod.amplitude.copy()
     envelopes[channels] = centred.amplitude[channels]
     name = "realistic, the phase from centred windows"
     scene_lines[name] = fringe.refine(decoded, dataclasses.replace(centred, amplitude=envelopes), carriers, spec,
                                       **scanner.fringe_options).proj_map
-    sphere, background = line_errors(scene_lines[name], capture.truth)
-    print(f"{name:42s} {sphere:10.3f} {background:14.3f}", flush=True)
+    print_row(name, scene_lines[name], capture.truth)
     # Each row keeps its own pixels (noise, for one, changes which pass the decoder's tests), so
     # the rows above differ by their pixel sets too; the same on the pixels every row kept:
     common = np.logical_and.reduce([np.isfinite(lines) for lines in scene_lines.values()])
     print(f"\non the pixels that every sphere-scene row kept ({common.mean():.1%} of the frame):")
     for name, lines in scene_lines.items():
-        sphere, background = line_errors(np.where(common, lines, np.nan), capture.truth)
-        print(f"{name:42s} {sphere:10.3f} {background:14.3f}")
+        print_row(name, np.where(common, lines, np.nan), capture.truth)
 
 
 if __name__ == "__main__":
