@@ -5,6 +5,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.special import erf
 
 from sliscan import InputError, PatternSpec, Scanner, fringe, patterns, simulate
 from sliscan.decode import decode
@@ -176,6 +177,18 @@ def test_window_contrast_is_the_pixels_dc_over_its_windows_mean():
     assert np.all(np.diff(contrast[119:150]) > 0)
 
 
+#: The `refine` steps after the edge margin, switched off where a test isolates an earlier one.
+LATER_OFF = dict(near_jump_contrast=np.inf, shadow_sides=False)
+
+
+def dropped_exactly(kept, every, expected):
+    """Assert that `kept` (a `refine` step on) is `every` (off) less the pixels `expected`, the
+    others untouched; returns the pixels the step dropped."""
+    assert np.array_equal(kept.valid, every.valid & ~expected)
+    assert np.array_equal(kept.proj_map[kept.valid], every.proj_map[kept.valid])
+    return every.valid & expected
+
+
 @pytest.fixture(scope="module")
 def steps_scan(rig):
     """The steps under realistic light, scanned with the phase pattern: (capture, spec, demodulated,
@@ -190,24 +203,22 @@ def steps_scan(rig):
 
 def test_refine_drops_exactly_the_pixels_whose_window_lies_on_another_surface(steps_scan):
     _, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, max_window_contrast=k, edge_margin=False)
+    kept, every = (fringe.refine(gray, demod, carriers, spec, max_window_contrast=k, edge_margin=False, **LATER_OFF)
                    for k in (fringe.MAX_WINDOW_CONTRAST, np.inf))
     contrast = fringe.window_contrast(demod.dc, demod.offset, carriers.line_windows())
     across = (contrast > fringe.MAX_WINDOW_CONTRAST) | (contrast < 1 / fringe.MAX_WINDOW_CONTRAST)
-    assert np.array_equal(kept.valid, every.valid & ~across)
-    assert np.array_equal(kept.proj_map[kept.valid], every.proj_map[kept.valid])
-    assert np.all(kept.stripe[every.valid & across] == -1)
-    assert 0 < np.sum(every.valid & across) < 0.05 * every.valid.sum()
+    dropped = dropped_exactly(kept, every, across)
+    assert np.all(kept.stripe[dropped] == -1)
+    assert 0 < np.sum(dropped) < 0.05 * every.valid.sum()
 
 
 def test_refine_drops_the_pixels_beside_a_jump_where_the_wrong_periods_are(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, edge_margin=margin) for margin in (True, False))
+    kept, every = (fringe.refine(gray, demod, carriers, spec, edge_margin=margin, **LATER_OFF)
+                   for margin in (True, False))
     radius = max(1, round(fringe.EDGE_MARGIN * carriers.window))  # 3 px on this rig
     near = fringe.near_jumps(every.proj_map, radius=radius, jump=spec.fringe_period / 2)
-    assert np.array_equal(kept.valid, every.valid & ~near)
-    assert np.array_equal(kept.proj_map[kept.valid], every.proj_map[kept.valid])
-    dropped = every.valid & near
+    dropped = dropped_exactly(kept, every, near)
     assert 0 < dropped.sum() < 0.03 * every.valid.sum()  # measured 1.5 %
     # the margin holds the patches a fringe period off: the dropped pixels' error is many times
     # the kept ones' (measured 13.2 against 1.4 projector lines), a quarter of the patches go
@@ -215,6 +226,59 @@ def test_refine_drops_the_pixels_beside_a_jump_where_the_wrong_periods_are(steps
     assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])
     off = error > spec.fringe_period / 2
     assert np.sum(dropped & off) > 0.2 * np.sum(every.valid & off)  # measured 29 %
+
+
+def test_refine_drops_the_pixels_beside_a_jump_whose_window_lies_on_another_surface(steps_scan):
+    capture, spec, demod, carriers, gray = steps_scan
+    kept, every = (fringe.refine(gray, demod, carriers, spec, near_jump_contrast=k, shadow_sides=False)
+                   for k in (fringe.NEAR_JUMP_CONTRAST, np.inf))
+    contrast = fringe.window_contrast(demod.dc, demod.offset, carriers.line_windows())
+    radius = max(1, round(fringe.NEAR_JUMP_REACH * carriers.window))
+    near = fringe.near_jumps(every.proj_map, radius=radius, jump=spec.fringe_period / 2)
+    across = near & ((contrast > fringe.NEAR_JUMP_CONTRAST) | (contrast < 1 / fringe.NEAR_JUMP_CONTRAST))
+    dropped = dropped_exactly(kept, every, across)
+    assert 0 < dropped.sum() < 0.01 * every.valid.sum()  # measured 0.09 %
+    error = np.abs(every.proj_map - capture.truth.proj[..., 1])
+    assert np.mean(error[dropped]) > 2 * np.mean(error[kept.valid])  # measured 4.1 against 1.4 lines
+
+
+def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
+    # a lit surface (DC 1) whose shadow (DC 0.1) begins at row 20.5, blurred by a Gaussian of
+    # sigma 1.5 rows: the light is halfway at row 20.5, so rows 21 and on lie in the shadow
+    rows = np.arange(40)
+    dc = (0.1 + 0.9 * 0.5 * (1 - erf((rows - 20.5) / (1.5 * np.sqrt(2))))).astype(np.float32)[:, None]
+    line = np.full((40, 1), 300.0, np.float32)
+    for last in (21, 22, 23):  # the decoder kept rows up to `last`: the shadow-side ones go, at most 3
+        line[:] = 300.0
+        line[last + 1:] = np.nan
+        dark = fringe.shadow_side(line, dc, jump=50.0)[:, 0]
+        assert np.nonzero(dark)[0].tolist() == list(range(21, last + 1))
+    line[:] = 300.0
+    line[25:] = np.nan  # four rows into the shadow: the walk stops after SHADOW_SIDE_STEPS
+    assert np.nonzero(fringe.shadow_side(line, dc, jump=50.0)[:, 0])[0].tolist() == [22, 23, 24]
+    # rows up to 20 (the lit side of the halfway point) stay, at a gap or at a jump
+    line[:] = 300.0
+    line[21:] = np.nan
+    assert not fringe.shadow_side(line, dc, jump=50.0).any()
+    line[21:] = 420.0  # another surface beyond a jump, kept too: only row 20's side is tested
+    assert np.nonzero(fringe.shadow_side(line, dc, jump=50.0)[:, 0])[0].tolist() == []
+    # not at a run end (a dark dip inside a run), or the outside brighter (a shadow ending): kept
+    line[:] = 300.0
+    assert not fringe.shadow_side(line, dc, jump=50.0).any()
+    line[:21] = np.nan
+    assert not fringe.shadow_side(line, dc, jump=50.0).any()
+
+
+def test_refine_drops_the_pixels_on_the_shadow_side_of_a_light_edge(steps_scan):
+    capture, spec, demod, carriers, gray = steps_scan
+    kept, every = (fringe.refine(gray, demod, carriers, spec, shadow_sides=side) for side in (True, False))
+    dark = fringe.shadow_side(every.proj_map, demod.dc, jump=spec.fringe_period / 2)
+    dropped = dropped_exactly(kept, every, dark)
+    assert 0 < dropped.sum() < 0.015 * every.valid.sum()  # measured 0.76 %
+    # their centres see the shadow, another surface: many times the kept pixels' error
+    error = np.abs(every.proj_map - capture.truth.proj[..., 1])
+    assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])  # measured 11.6 against 1.3 lines
+    assert np.mean(~capture.truth.lit[dropped]) > 0.6  # measured 87 %
 
 
 def test_unweighted_phasors_sum_to_the_phase_at_the_middle_of_their_box():
@@ -415,7 +479,8 @@ def test_extending_fills_lit_pixels_the_gray_code_left_without_wrong_periods():
     stages = Scanner(spec, rig.calibration).scan_stages(capture.image)[1]
     truth = capture.truth
     gray = decode(stages.demodulated, spec)
-    before, after = (fringe.refine(gray, stages.demodulated, stages.carriers, spec, extend=extend, edge_margin=False)
+    before, after = (fringe.refine(gray, stages.demodulated, stages.carriers, spec, extend=extend, edge_margin=False,
+                                   **LATER_OFF)
                      for extend in (False, True))
     added = after.valid & ~before.valid
     assert np.array_equal(after.proj_map[before.valid], before.proj_map[before.valid])  # kept pixels untouched
