@@ -271,14 +271,18 @@ def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
 
 def test_refine_drops_the_pixels_on_the_shadow_side_of_a_light_edge(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, shadow_sides=side) for side in (True, False))
-    dark = fringe.shadow_side(every.proj_map, demod.dc, jump=spec.fringe_period / 2)
-    dropped = dropped_exactly(kept, every, dark)
-    assert 0 < dropped.sum() < 0.015 * every.valid.sum()  # measured 0.76 %
+    kept, every = (fringe.refine(gray, demod, carriers, spec, shadow_sides=side, image=capture.image)
+                   for side in (True, False))
+    down = fringe.shadow_side(every.proj_map, demod.dc, jump=spec.fringe_period / 2)
+    along = fringe.shadow_side(every.proj_map, capture.image, jump=spec.fringe_period / 2, axis=1,
+                               reach=fringe.SHADOW_SIDE_REACH_CARRIERS)
+    dropped = dropped_exactly(kept, every, down | along)
+    assert along[dropped].sum() > 0.1 * dropped.sum()  # measured 26 % along the carriers
+    assert 0 < dropped.sum() < 0.02 * every.valid.sum()  # measured 1.0 %
     # their centres see the shadow, another surface: many times the kept pixels' error
     error = np.abs(every.proj_map - capture.truth.proj[..., 1])
-    assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])  # measured 11.6 against 1.3 lines
-    assert np.mean(~capture.truth.lit[dropped]) > 0.6  # measured 87 %
+    assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])  # measured 10.5 against 1.3 lines
+    assert np.mean(~capture.truth.lit[dropped]) > 0.5  # measured 66 %
 
 
 def test_unweighted_phasors_sum_to_the_phase_at_the_middle_of_their_box():
@@ -452,7 +456,9 @@ def test_a_clean_sphere_scans_to_sub_stripe_lines(rig):
     # is exact but for the windows' blending of a curved surface: measured 0.26 lines
     assert np.median(stripes) == pytest.approx(stripe / 4, rel=0.1)
     assert np.median(phase) < 0.5
-    assert complete > 0.95
+    # measured 94.9 %: the shadow-side test along the carriers drops 0.2 % of the pixels along
+    # the limb, whose windows end at them (median error 7.3 lines against 0.7 for the kept ones)
+    assert complete > 0.94
     assert np.mean(phase > stripe) < 0.002  # no wrong periods
 
 

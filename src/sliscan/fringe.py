@@ -50,8 +50,9 @@ Stages, each its own function:
 8. Within half a window of such a jump (across the undecoded gap that usually lies beside it),
    also the pixels whose window contrast is above 2 (`NEAR_JUMP_CONTRAST`): a window reaching
    onto the other surface, where far from any jump the same contrast is an albedo edge.
-9. Last, the pixels at the ends of runs down the phase direction whose DC puts their centre on
-   the shadow's side of a light edge (`shadow_side`): blur lends them the lit side's code.
+9. Last, the pixels at the ends of runs (down the phase direction, and along the carriers on the
+   capture itself) whose light puts their centre on the shadow's side of a light edge
+   (`shadow_side`): blur, or a window ending at them, lends them the lit side's code.
 
 Measured on the virtual rig: README, "Sub-stripe depth from one frame".
 """
@@ -869,6 +870,9 @@ NEAR_JUMP_CONTRAST = 2.0
 SHADOW_SIDE_REACH = 2
 SHADOW_SIDE_DARKER = 0.6
 SHADOW_SIDE_STEPS = 3
+#: The same test along the carriers, on the capture's own pixels (`refine`'s `image`): their
+#: light carries the carriers' ripple, so it compares pixels a little farther apart.
+SHADOW_SIDE_REACH_CARRIERS = 3
 
 #: `extend` defaults: a pixel the decoding left out joins when at least this share of its box
 #: is decoded, their lines spread by at most this many stripes (one surface), and its own
@@ -886,7 +890,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
            recentre_phase: bool = True, max_window_contrast: float = MAX_WINDOW_CONTRAST,
            dc_weights: bool = False, bridge: bool = True, recentre_rows: bool = True,
            edge_margin: bool = True, near_jump_contrast: float = NEAR_JUMP_CONTRAST,
-           shadow_sides: bool = True) -> Decoded:
+           shadow_sides: bool = True, image: NDArray | None = None) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -956,8 +960,11 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         keeps them (for the benchmark's record).  Needs the window demodulator's offsets.
     shadow_sides : bool
         Last, drop the pixels at the ends of runs down the phase direction whose DC puts their
-        centre on the shadow's side of the edge (`shadow_side`); if false, keep them (for the
+        centre on the shadow's side of the edge (`shadow_side`), and with `image` those at the
+        ends of runs along the carriers whose own light does; if false, keep them (for the
         benchmark's record).
+    image : (H, W) array, optional
+        The capture (camera orientation), for the test along the carriers.
 
     Returns
     -------
@@ -968,7 +975,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     n = len(spec.phase_carriers)
     if n == 0:
         return decoded
-    frame = lambda image: np.ascontiguousarray(along_carriers(image, spec))  # noqa: E731  (a transpose for columns)
+    frame = lambda a: np.ascontiguousarray(along_carriers(a, spec))  # noqa: E731  (a transpose for columns)
     stripe_lines = spec.phase_lines / spec.stripes
     fringe_cam = spec.fringe_period / carriers.scale  # camera pixels per fringe period (about)
     max_jump = 1.5 * stripe_lines
@@ -1057,73 +1064,87 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         out[near], stripe[near] = np.nan, -1
     if shadow_sides:
         dark = shadow_side(out, frame(demod.dc), jump=0.5 * period)
+        if image is not None:
+            dark |= shadow_side(out, frame(image), jump=0.5 * period, axis=1, reach=SHADOW_SIDE_REACH_CARRIERS)
         out[dark], stripe[dark] = np.nan, -1
     out, stripe = frame(out), frame(stripe)
     return replace(decoded, proj_map=out, stripe=stripe, valid=np.isfinite(out))
 
 
 @numba.njit(cache=True, nogil=True)
-def _shadow_side_rows(line: NDArray[np.float32], dc: NDArray[np.float32], jump: float, reach: int, darker: float,
-                      steps: int, rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
+def _shadow_side_rows(line: NDArray[np.float32], dc: NDArray[np.float32], axis: int, jump: float, reach: int,
+                      darker: float, steps: int, rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
     """`shadow_side` for the run ends on the given `rows`; marks `out` (pixels up to `steps`
-    rows inward of them, so on other rows too: a mark is only ever set)."""
+    inward of them, so on other rows too when `axis` is 0: a mark is only ever set)."""
     height, width = line.shape
-    for y in range(rows.size):
-        r = rows[y]
+    dr, dx = (1, 0) if axis == 0 else (0, 1)
+    for r in rows:
         for x in range(width):
             here = line[r, x]
             if not np.isfinite(here):
                 continue
-            for step in (1, -1):  # the end facing row r + step
-                beyond = r + step
-                if 0 <= beyond < height and np.isfinite(line[beyond, x]) and abs(line[beyond, x] - here) <= jump:
+            for step in (1, -1):  # the end facing the pixel `step` along the axis
+                br, bx = r + dr * step, x + dx * step
+                if (0 <= br < height and 0 <= bx < width and np.isfinite(line[br, bx])
+                        and abs(line[br, bx] - here) <= jump):
                     continue  # not a run end on this side
-                p = r
+                pr, px = r, x
                 for _ in range(steps):
-                    inner, outer = p - step * reach, p + step * reach
-                    if not (0 <= inner < height and 0 <= outer < height) or not np.isfinite(line[p, x]):
+                    ir, ix = pr - dr * step * reach, px - dx * step * reach
+                    orow, ox = pr + dr * step * reach, px + dx * step * reach
+                    if not (0 <= ir < height and 0 <= ix < width and 0 <= orow < height and 0 <= ox < width):
                         break
-                    if p != r and abs(line[p, x] - line[p + step, x]) > jump:
+                    if not np.isfinite(line[pr, px]):
+                        break
+                    if (pr != r or px != x) and abs(line[pr, px] - line[pr + dr * step, px + dx * step]) > jump:
                         break  # walked off the run
-                    lit, shadow = dc[inner, x], dc[outer, x]
-                    if not (shadow < darker * lit and dc[p, x] < 0.5 * (lit + shadow)):
+                    lit, shadow = dc[ir, ix], dc[orow, ox]
+                    if not (shadow < darker * lit and dc[pr, px] < 0.5 * (lit + shadow)):
                         break
-                    out[p, x] = True
-                    p -= step
+                    out[pr, px] = True
+                    pr, px = pr - dr * step, px - dx * step
 
 
-def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: float,
+def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: float, axis: int = 0,
                 reach: int = SHADOW_SIDE_REACH, darker: float = SHADOW_SIDE_DARKER,
                 steps: int = SHADOW_SIDE_STEPS) -> NDArray[np.bool_]:
-    """The kept pixels at the ends of runs down the phase direction (axis 0) that lie on the
-    shadow's side of a light edge, ``(H, W)`` bool.
+    """The kept pixels at the ends of runs along `axis` that lie on the shadow's side of a light
+    edge, ``(H, W)`` bool.
 
-    A run ends where the next pixel down the column is undecoded or more than `jump` lines
+    A run ends where the next pixel along the axis is undecoded or more than `jump` lines
     off.  Its last pixel is taken when the DC `reach` pixels outward is under `darker` times
     the DC `reach` pixels inward, and its own DC is below their midpoint; then the pixel
     before it, up to `steps` pixels.  Such a pixel's centre sees the shadow (blur is
-    symmetric: the edge is where the light is halfway), but blur brings it enough of the lit
-    side's light to decode that side's code and fringe: triangulated on its own ray, that is
-    a point off both surfaces.  On the virtual rig's steps the boxes' shadows on the wall
-    below them made such rows one to three pixels deep along every horizontal edge (5 MP
-    smooth steps: RMS error 6.12 -> 4.40 mm for 0.01 points of completeness; README).
+    symmetric: the edge is where the light is halfway), but blur, or a demodulation window
+    that ends at it, brings it enough of the lit side's light to decode that side's code and
+    fringe: triangulated on its own ray, that is a point off both surfaces.  On the virtual
+    rig's steps the boxes' shadows on the wall below them made such rows one to three pixels
+    deep along every horizontal edge (5 MP smooth steps: RMS error 6.12 -> 4.40 mm for 0.01
+    points of completeness; README).
 
     Parameters
     ----------
     line : (H, W) float32 array
         Projector lines, NaN where not kept; the phase direction along axis 0.
     dc : (H, W) float32 array
-        Each pixel's DC (`Demodulated.dc`, same frame).
+        Each pixel's light: down the phase direction (`axis` 0) `Demodulated.dc`, whose window
+        lies along the carriers; along the carriers (`axis` 1) the capture itself, since there
+        `Demodulated.dc` is the mean of a window that may lie on the other side of the edge.
     jump : float
         Lines between neighbours that end a run.
+    axis : {0, 1}
+        Along which axis the runs are followed.
 
     >>> line = np.full((12, 1), 50.0, np.float32); line[8:] = np.nan      # kept rows 0-7
     >>> dc = np.array([1, 1, 1, 1, 1, 0.9, 0.6, 0.4, 0.15, 0.1, 0.1, 0.1], np.float32)[:, None]
     >>> np.nonzero(shadow_side(line, dc, jump=25.0)[:, 0])[0].tolist()    # 0.4 < (0.9 + 0.1) / 2
     [7]
+    >>> shadow_side(line.T.copy(), dc.T.copy(), jump=25.0, axis=1).nonzero()[1].tolist()
+    [7]
     """
     out = np.zeros(line.shape, bool)
-    over_rows(lambda rows: _shadow_side_rows(line, dc, jump, reach, darker, steps, rows, out), line.shape[0])
+    dc = np.asarray(dc, dtype=np.float32)
+    over_rows(lambda rows: _shadow_side_rows(line, dc, axis, jump, reach, darker, steps, rows, out), line.shape[0])
     return out
 
 

@@ -390,7 +390,7 @@ class Scanner:
         demod, carriers = self.demodulate(image)
         t1 = time.perf_counter()
         decoded = fringe.refine(decode(demod, self.spec, **self.decode_options), demod, carriers, self.spec,
-                                **self.fringe_options)
+                                image=image, **self.fringe_options)
         t2 = time.perf_counter()
         points, valid = self._measured(decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
         proj_map, stripe = _finish(points, valid, decoded.proj_map, decoded.stripe)
