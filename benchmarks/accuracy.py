@@ -105,6 +105,7 @@ DECODER_VARIANTS = {
                                                             dict(fringe_options=dict(near_jump_contrast=float("inf")))),
     "sliscan 4-bit + phase (no shadow-side test)": ("sliscan 4-bit + phase",
                                                     dict(fringe_options=dict(shadow_sides=False))),
+    "sliscan 4-bit + phase (no short-run test)": ("sliscan 4-bit + phase", dict(fringe_options=dict(short_run=0))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
     "thesis 4-bit (decided by order)": ("thesis 4-bit", dict(decode_options=dict(order=True))),
