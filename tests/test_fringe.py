@@ -178,7 +178,7 @@ def test_window_contrast_is_the_pixels_dc_over_its_windows_mean():
 
 
 #: The `refine` steps after the edge margin, switched off where a test isolates an earlier one.
-LATER_OFF = dict(near_jump_contrast=np.inf, short_run=0, shadow_sides=False)
+LATER_OFF = dict(near_jump_contrast=np.inf, short_run=0, mid_run_contrast=np.inf, shadow_sides=False)
 
 
 def dropped_exactly(kept, every, expected):
@@ -230,7 +230,7 @@ def test_refine_drops_the_pixels_beside_a_jump_where_the_wrong_periods_are(steps
 
 def test_refine_drops_the_pixels_beside_a_jump_whose_window_lies_on_another_surface(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, near_jump_contrast=k, short_run=0, shadow_sides=False)
+    kept, every = (fringe.refine(gray, demod, carriers, spec, **dict(LATER_OFF, near_jump_contrast=k))
                    for k in (fringe.NEAR_JUMP_CONTRAST, np.inf))
     contrast = fringe.window_contrast(demod.dc, demod.offset, carriers.line_windows())
     radius = max(1, round(fringe.NEAR_JUMP_REACH * carriers.window))
@@ -244,8 +244,8 @@ def test_refine_drops_the_pixels_beside_a_jump_whose_window_lies_on_another_surf
 
 def test_refine_drops_the_short_runs_beside_a_jump(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, near_jump_contrast=np.inf, short_run=s,
-                                 shadow_sides=False) for s in (fringe.SHORT_RUN, 0))
+    kept, every = (fringe.refine(gray, demod, carriers, spec, **dict(LATER_OFF, short_run=s))
+                   for s in (fringe.SHORT_RUN, 0))
     radius = max(1, round(fringe.NEAR_JUMP_REACH * carriers.window))
     near = fringe.near_jumps(every.proj_map, radius=radius, jump=spec.fringe_period / 2)
     short = fringe.run_lengths(every.proj_map, jump=spec.fringe_period / 2) < fringe.SHORT_RUN * carriers.window
@@ -253,6 +253,15 @@ def test_refine_drops_the_short_runs_beside_a_jump(steps_scan):
     assert 0 < dropped.sum() < 0.02 * every.valid.sum()  # measured 1.0 % (runs of at most 4 px here)
     error = np.abs(every.proj_map - capture.truth.proj[..., 1])
     assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])  # measured 19.3 against 1.2 lines
+    # the runs under half a window whose window's light differs from theirs by half or more
+    kept, every = (fringe.refine(gray, demod, carriers, spec, **dict(LATER_OFF, mid_run_contrast=c))
+                   for c in (fringe.MID_RUN_CONTRAST, np.inf))
+    contrast = fringe.window_contrast(demod.dc, demod.offset, carriers.line_windows())
+    mid = fringe.run_lengths(every.proj_map, jump=spec.fringe_period / 2) < fringe.MID_RUN * carriers.window
+    mid &= (contrast > fringe.MID_RUN_CONTRAST) | (contrast < 1 / fringe.MID_RUN_CONTRAST)
+    dropped = dropped_exactly(kept, every, near & mid)
+    assert 0 < dropped.sum() < 0.01 * every.valid.sum()  # measured 0.10 %
+    assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])  # measured 14.2 against 1.4 lines
 
 
 def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
