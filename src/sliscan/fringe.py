@@ -1191,21 +1191,35 @@ def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: flo
     return out
 
 
-def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.intp]:
+@numba.njit(cache=True, nogil=True)
+def _run_lengths_rows(line: NDArray[np.float32], jump: float, rows: NDArray[np.intp], out: NDArray[np.int32]) -> None:
+    """`run_lengths` on the given `rows`, into `out`."""
+    width = line.shape[1]
+    for r in rows:
+        start = 0
+        while start < width:
+            if not np.isfinite(line[r, start]):
+                out[r, start] = 0
+                start += 1
+                continue
+            end = _run_end(line[r], start, jump)
+            for x in range(start, end):
+                out[r, x] = end - start
+            start = end
+
+
+def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.int32]:
     """Length (pixels) of the run along axis 1 that each finite pixel of `line` ``(H, W)`` lies
-    in, ``(H, W)``; a run ends at a NaN or where neighbours differ by more than `jump`; 0 on NaN.
+    in, ``(H, W)`` int32; a run ends at a NaN or where neighbours differ by more than `jump`; 0
+    on NaN.
 
     >>> line = np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32)
     >>> run_lengths(line, jump=10.0).tolist()
     [[2, 2, 0, 1, 3, 3, 3]]
     """
-    finite = np.isfinite(line)
-    starts = np.ones(line.shape, bool)
-    with np.errstate(invalid="ignore"):
-        starts[:, 1:] = ~(finite[:, 1:] & finite[:, :-1] & (np.abs(np.diff(line, axis=1)) <= jump))
-    run = np.cumsum(starts, axis=None).reshape(line.shape)
-    lengths = np.bincount(run[finite], minlength=run.max() + 1)
-    return np.where(finite, lengths[run], 0)
+    out = np.empty(line.shape, np.int32)
+    over_rows(lambda rows: _run_lengths_rows(line, jump, rows, out), line.shape[0])
+    return out
 
 
 def near_jumps(line: NDArray[np.float32], *, radius: int, jump: float) -> NDArray[np.bool_]:
