@@ -1083,27 +1083,29 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
                                             rows, out, stripe), shape[0])
     contrast = (window_contrast(frame(demod.dc), frame(demod.offset), carriers.line_windows())
                 if demod.offset is not None else None)
-    if contrast is not None and np.isfinite(max_window_contrast):
-        across = (contrast > max_window_contrast) | (contrast < 1 / max_window_contrast)
+
+    def beyond(limit: float) -> NDArray[np.bool_] | None:
+        """Where the window contrast exceeds `limit` or is below its inverse (None: no test)."""
+        if contrast is None or not np.isfinite(limit):
+            return None
+        return (contrast > limit) | (contrast < 1 / limit)
+
+    across = beyond(max_window_contrast)
+    if across is not None:
         out[across], stripe[across] = np.nan, -1
     if edge_margin:
         near = near_jumps(out, radius=max(1, int(round(EDGE_MARGIN * carriers.window))), jump=0.5 * period)
         out[near], stripe[near] = np.nan, -1
-    beside = (contrast is not None and (np.isfinite(near_jump_contrast) or np.isfinite(mid_run_contrast))
-              or short_run > 0)
-    if beside:
-        near = near_jumps(out, radius=max(1, int(round(NEAR_JUMP_REACH * carriers.window))), jump=0.5 * period)
-        drop = np.zeros(shape, bool)
-        if contrast is not None and np.isfinite(near_jump_contrast):
-            drop |= (contrast > near_jump_contrast) | (contrast < 1 / near_jump_contrast)
-        if short_run > 0 or (contrast is not None and np.isfinite(mid_run_contrast)):
+    across, mid_across = beyond(near_jump_contrast), beyond(mid_run_contrast)
+    if across is not None or mid_across is not None or short_run > 0:
+        drop = np.zeros(shape, bool) if across is None else across
+        if short_run > 0 or mid_across is not None:
             runs = run_lengths(out, jump=0.5 * period)
             drop |= runs < short_run * carriers.window
-            if contrast is not None and np.isfinite(mid_run_contrast):
-                drop |= (runs < MID_RUN * carriers.window) & ((contrast > mid_run_contrast)
-                                                              | (contrast < 1 / mid_run_contrast))
+            if mid_across is not None:
+                drop |= (runs < MID_RUN * carriers.window) & mid_across
             del runs
-        drop &= near
+        drop &= near_jumps(out, radius=max(1, int(round(NEAR_JUMP_REACH * carriers.window))), jump=0.5 * period)
         out[drop], stripe[drop] = np.nan, -1
     if shadow_sides:
         dark = shadow_side(out, frame(demod.dc), jump=0.5 * period)
