@@ -1110,7 +1110,8 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     if shadow_sides:
         dark = shadow_side(out, frame(demod.dc), jump=0.5 * period)
         if image is not None:
-            dark |= shadow_side(out, frame(image), jump=0.5 * period, axis=1, reach=SHADOW_SIDE_REACH_CARRIERS)
+            dark |= shadow_side(out, frame(np.asarray(image, dtype=np.float32)), jump=0.5 * period, axis=1,
+                                reach=SHADOW_SIDE_REACH_CARRIERS)
         out[dark], stripe[dark] = np.nan, -1
     out, stripe = frame(out), frame(stripe)
     return replace(decoded, proj_map=out, stripe=stripe, valid=np.isfinite(out))
