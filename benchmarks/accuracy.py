@@ -108,6 +108,8 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (no short-run test)": ("sliscan 4-bit + phase", dict(fringe_options=dict(short_run=0))),
     "sliscan 4-bit + phase (no mid-run test)": ("sliscan 4-bit + phase",
                                                 dict(fringe_options=dict(mid_run_contrast=float("inf")))),
+    "sliscan 4-bit + phase (one-period windows only)": ("sliscan 4-bit + phase",
+                                                         dict(fringe_options=dict(ramped_windows=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
     "thesis 4-bit (decided by order)": ("thesis 4-bit", dict(decode_options=dict(order=True))),

@@ -52,6 +52,53 @@ def test_window_fit_noise_estimate_matches_noise():
     np.testing.assert_allclose(np.std(err, axis=(1, 2)), expected, rtol=0.2)
 
 
+def phase_channel_lines(envelopes, *, window=40, lines=2, jump_at=None, noise=0.0):
+    """Lines of seven carriers k / window (k = 1..7) with the given envelopes ``(7, W)`` on a
+    DC of 0.5; past `jump_at` every carrier's phase jumps (a depth edge)."""
+    rng = np.random.default_rng(5)
+    width = envelopes.shape[1]
+    x = np.arange(width)
+    phases = rng.uniform(0, 2 * np.pi, (7, 1)) + (0 if jump_at is None else rng.uniform(1, 5, (7, 1)) * (x >= jump_at))
+    freqs = np.arange(1, 8) / window
+    line = 0.5 + np.sum(envelopes * np.cos(2 * np.pi * freqs[:, None] * x + phases), axis=0)
+    image = np.tile(line, (lines, 1)) + noise * rng.standard_normal((lines, width))
+    return image.astype(np.float32), Carriers(frequencies=freqs, scale=1.0, window=window)
+
+
+def test_ramped_fit_follows_envelopes_that_change_along_its_window():
+    # a phase channel (the last three carriers) whose envelopes change linearly along the line,
+    # as where its fringe crosses the line obliquely: the two-period fit with a ramp per
+    # carrier models exactly that, and leaves only the flat field's own error (the box mean of
+    # carriers whose envelopes change is not quite the DC); the one-period fit takes each
+    # envelope for constant within its window and leaks the change into its neighbours
+    width = 640
+    x = np.arange(width)
+    bits = np.array([0.1, 0.05, 0.08, 0.04])[:, None] * np.ones(width)
+    for change, own_error, ramped_error in ((0.0, 1e-5, 1e-5), (0.5, 1e-2, 2.5e-3)):
+        phase = np.array([0.08, 0.06, 0.05])[:, None] * (1 + change * (x - width / 2) / width)
+        image, carriers = phase_channel_lines(np.vstack([bits, phase]))
+        out = demodulate_window(image, carriers, adaptive=False, albedo=None, ramped=range(4, 7))
+        inner = slice(50, -50)
+        # measured: 1.9e-7 / 6e-8 (constant) and 1.3e-2 / 1.7e-3 of the weakest envelope (0.05)
+        own = np.abs(out.amplitude[4:, 0, inner] - phase[:, inner]).max() / 0.05
+        ramped = np.abs(out.ramped[:, 0, inner] - phase[:, inner]).max() / 0.05
+        assert ramped < ramped_error and (change == 0 or own > max(own_error, 4 * ramped))
+    # the window is two periods: the pixels within one period of either end have none
+    assert np.isnan(out.ramped[:, :, :39]).all() and np.isnan(out.ramped[:, :, -40:]).all()
+    assert np.isfinite(out.ramped[:, :, 39:-40]).all()
+
+
+def test_ramped_fit_leaves_out_windows_with_an_edge_the_one_period_windows_avoid():
+    # the carriers' phases jump at pixel 320 (a depth edge): exactly the pixels whose two-period
+    # window (pixel - 39 .. pixel + 40) holds both sides of it have no ramped envelopes
+    envelopes = np.array([0.1, 0.05, 0.08, 0.04, 0.08, 0.06, 0.05])[:, None] * np.ones(640)
+    image, carriers = phase_channel_lines(envelopes, jump_at=320, noise=0.002, lines=20)
+    out = demodulate_window(image, carriers, adaptive=False, albedo=None, ramped=range(4, 7))
+    pixel = np.arange(640)
+    expected = (pixel >= 39) & (pixel < 640 - 40) & ~((pixel - 39 < 320) & (pixel + 40 >= 320))
+    assert np.array_equal(np.isfinite(out.ramped[0]), np.broadcast_to(expected, (20, 640)))
+
+
 def test_adaptive_window_keeps_a_step_out():
     image, carriers = synthetic_lines(amplitudes=(0.1, 0.0, 0.0, 0.0), slope=0)
     image[:, 300:] = 0.1  # a shadow: ambient only, no carrier

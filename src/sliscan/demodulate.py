@@ -109,6 +109,10 @@ class Demodulated:
         starts or ends at the pixel (next to an edge, or where the code changes within a centred
         window).  The envelopes describe the light around that centre, not at the pixel
         (`sliscan.fringe.recentre`).  None for demodulators that do not compute it.
+    ramped : (R, H, W) float32 array or None
+        R carriers' envelopes (a phase channel's, after the bits') from a centred window of two
+        spacing periods with a ramp per carrier (`demodulate_window`'s `ramped`), relative to the
+        DC as `amplitude` is; NaN where that window leaves the line.  None unless asked for.
     """
 
     amplitude: NDArray[np.float32]
@@ -117,6 +121,7 @@ class Demodulated:
     misfit: NDArray[np.float32] | None = None
     noise: NDArray[np.float32] | None = None
     offset: NDArray[np.float32] | None = None
+    ramped: NDArray[np.float32] | None = None
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -377,7 +382,8 @@ def _phasors(omega: NDArray[np.float64], width: int, block: int = 64) -> NDArray
 @numba.njit(cache=True, nogil=True)
 def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int, adaptive: bool,
               unexplained: NDArray[np.float32], var: NDArray[np.float32], dc: NDArray[np.float32],
-              amp: NDArray[np.float32], misfit: NDArray[np.float32], offset: NDArray[np.float32]) -> None:
+              amp: NDArray[np.float32], misfit: NDArray[np.float32], offset: NDArray[np.float32],
+              ramped_first: int, ramped: NDArray[np.float32]) -> None:
     """Best least-squares window fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` at every
     pixel of one line; writes the outputs of `demodulate_window` for it (``(W,)`` each, `amp`
     ``(C, W)``), in image units.
@@ -508,23 +514,142 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
         unexplained[xi], var[xi], dc[xi] = fit_u[best] * f * f, fit_var[best] * f * f, fit_d[best] * f
         misfit[xi] = abs(observed - prediction[xi]) / max(fit_d[best], 1e-6)
         offset[xi] = best + (window - 1) / 2 - xi
+    if ramped_first >= 0:
+        _fit_ramped(cum_i, cum_xi, cum_q, block, phasors, omega, window, ramped_first, dc, fit_u, fit_c, ramped)
+
+
+#: The window of `_fit_ramped`, in spacing periods.  Over one period a ramp per carrier makes
+#: the fit ill-conditioned (condition number 7e3 against 14 without; README, "Sub-stripe depth
+#: from one frame"); over two, 6.
+RAMPED_PERIODS = 2
+#: `_fit_ramped` leaves out the pixels where the one-period fit of either half of its window
+#: leaves more than this times the unexplained energy of the pixel's centred one.
+RAMPED_MISFIT = 2.0
+RAMPED_FLOOR = 2.5e-5
+RAMPED_SCALE_STEP = 8
+
+
+@numba.njit(cache=True, nogil=True)
+def _ramped_gram(omega: NDArray[np.float64], length: int, first: int, ramped: int) -> NDArray[np.float64]:
+    """Gram matrix of `_fit_ramped`'s basis over a window of `length` pixels, in the window's
+    own phase: ``1, t, cos(w_n u), sin(w_n u)`` for every carrier, then ``t cos(w_n u), t sin(w_n
+    u)`` for the `ramped` carriers from `first` on (``u`` the pixel in the window, ``t`` its
+    offset from the window's centre over `length`)."""
+    n_carriers = omega.size
+    size = 2 + 2 * n_carriers + 2 * ramped
+    basis = np.empty((size, length))
+    t = (np.arange(length) - (length - 1) / 2) / length
+    basis[0], basis[1] = 1.0, t
+    for n in range(n_carriers):
+        basis[2 + 2 * n], basis[3 + 2 * n] = np.cos(omega[n] * np.arange(length)), np.sin(omega[n] * np.arange(length))
+    for k in range(ramped):
+        base = 2 + 2 * n_carriers + 2 * k
+        basis[base], basis[base + 1] = t * basis[2 + 2 * (first + k)], t * basis[3 + 2 * (first + k)]
+    return basis @ basis.T / length
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: NDArray[np.complex128],
+                block: NDArray[np.float64], phasors: NDArray[np.complex128], omega: NDArray[np.float64], window: int,
+                first: int, at_pixel: NDArray[np.float32], unexplained: NDArray[np.float64],
+                fitted: NDArray[np.complex128], out: NDArray[np.float32]) -> None:
+    """The envelopes of the R carriers ``first .. first + R - 1`` at each pixel of one line, from
+    a centred window of `RAMPED_PERIODS` spacing periods fitted with a DC, a ramp, every carrier
+    and a ramp of each of those R carriers' envelopes (`_ramped_gram`), relative to the DC fitted
+    there: `out` ``(R, W)`` is each envelope over that DC times `at_pixel` ``(W,)`` (the DC the
+    envelopes will be divided by); NaN where the window leaves the line, or where the one-period
+    fits (`unexplained`, `fitted`: `_fit_line`'s per window start) at its two ends and at the
+    pixel leave unexplained energies more than `RAMPED_MISFIT` apart (plus `RAMPED_FLOOR`): an
+    edge within the longer window that the one-period windows avoid.
+
+    `cum_i`, `cum_xi`, `cum_q`: `_fit_line`'s running sums of the flat-fielded line `block`
+    (alone, times the pixel, times each carrier's ``exp(-i w_n x)`` = `phasors`).  A fringe
+    that the stripes cross obliquely changes each envelope along the window, and a changing
+    envelope leaks into the neighbouring carriers' fits; the ramps take that change in.  A
+    carrier whose local frequency is off drifts in phase across the window, which the ramps
+    follow only to first order: the rest of the envelope's loss (the window mean of ``exp(i
+    drift t)``) is undone with the local scale measured from the one-period fits at the
+    window's two ends (the same phase drift per radian of carrier frequency for all carriers),
+    every `RAMPED_SCALE_STEP` starts.  The starts are fitted all at once (their projections, then
+    one matrix product)."""
+    n_carriers, width, ramped = omega.size, block.size, out.shape[0]
+    length = int(round(RAMPED_PERIODS * window))
+    second = length - window  # the start of the one-period window at the far end
+    out[:] = np.nan
+    if length > width or second < 1:
+        return
+    inverse = np.linalg.inv(_ramped_gram(omega, length, first, ramped))
+    half = (length - 1) // 2
+    here = (half - (length - 1) / 2) / length  # the pixel's t in its window
+    # the rows of the solution that give the DC and each envelope's two parts at the pixel
+    rows = np.empty((1 + 2 * ramped, inverse.shape[0]))
+    rows[0] = inverse[0] + here * inverse[1]
+    for k in range(ramped):
+        cn, rk = 2 + 2 * (first + k), 2 + 2 * n_carriers + 2 * k
+        rows[1 + 2 * k], rows[2 + 2 * k] = inverse[cn] + here * inverse[rk], inverse[cn + 1] + here * inverse[rk + 1]
+    n = width - length + 1
+    projections = np.empty((inverse.shape[0], n))  # each basis function's window mean with the line
+    inv_length = 1.0 / length
+    for s in range(n):  # in loops: the array expressions' temporaries cost twice as much
+        e, centre = s + length, s + (length - 1) / 2
+        mean = (cum_i[e] - cum_i[s]) * inv_length
+        projections[0, s] = mean
+        projections[1, s] = ((cum_xi[e] - cum_xi[s]) * inv_length - centre * mean) * inv_length
+    for c in range(n_carriers):
+        for s in range(n):
+            q = (cum_q[c, s + length] - cum_q[c, s]) * inv_length * np.conj(phasors[c, s])
+            projections[2 + 2 * c, s], projections[3 + 2 * c, s] = q.real, -q.imag
+    x = np.arange(width)
+    for k in range(ramped):
+        c, row = first + k, 2 + 2 * n_carriers + 2 * k
+        cum_xq = _cumsum0(block * x * phasors[c])
+        for s in range(n):
+            e, centre = s + length, s + (length - 1) / 2
+            r = ((cum_xq[e] - cum_xq[s]) - centre * (cum_q[c, e] - cum_q[c, s])) * inv_length * inv_length
+            r *= np.conj(phasors[c, s])
+            projections[row, s], projections[row + 1, s] = r.real, -r.imag
+    coefficients = rows @ projections
+    # the local scale error, every RAMPED_SCALE_STEP starts
+    grid = np.arange(0, n, RAMPED_SCALE_STEP)
+    num, den = np.zeros(grid.size), np.zeros(grid.size)
+    for c in range(n_carriers):
+        z = fitted[c, grid + second] * phasors[c, grid + second] * np.conj(fitted[c, grid] * phasors[c, grid])
+        num += np.abs(z) * omega[c] * np.angle(z)
+        den += np.abs(z) * omega[c] * omega[c]
+    scale_error = np.where(den > 0, num / np.maximum(den, 1e-300), 0.0) / second
+    kept = np.ones((ramped, grid.size))  # what the drift over the window left of each envelope
+    for k in range(ramped):
+        half_turn = 0.5 * omega[first + k] * scale_error * length
+        turned = np.abs(half_turn) > 1e-6
+        kept[k][turned] = np.maximum(np.sin(half_turn[turned]) / half_turn[turned], 0.5)
+    for s in range(n):
+        centred = unexplained[min(max(s + half - window // 2, 0), width - window)]
+        left, right = unexplained[s], unexplained[s + second]
+        if max(left, right, centred) > RAMPED_MISFIT * min(left, right, centred) + RAMPED_FLOOR:
+            continue  # one part of the window is explained worse than another: an edge in it
+        gain = at_pixel[s + half] / max(coefficients[0, s], 1e-6)
+        for k in range(ramped):
+            re, im = coefficients[1 + 2 * k, s], coefficients[2 + 2 * k, s]
+            out[k, s + half] = np.sqrt(re * re + im * im) * gain / kept[k, s // RAMPED_SCALE_STEP]
 
 
 @numba.njit(cache=True, nogil=True)
 def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: NDArray[np.intp], short: int,
                adaptive: bool, lines: NDArray[np.intp], unexplained: NDArray[np.float32], var: NDArray[np.float32],
                dc: NDArray[np.float32], amp: NDArray[np.float32], misfit: NDArray[np.float32],
-               offset: NDArray[np.float32]) -> None:
+               offset: NDArray[np.float32], ramped_first: int, ramped: NDArray[np.float32]) -> None:
     """`_fit_line` on the given `lines` of `img` ``(H, W)``, without the GIL (threads run
     disjoint sets of lines); `omegas` ``(H, C)`` radians per pixel, `windows` ``(H,)``;
-    outputs ``(H, W)`` and `amp` ``(C, H, W)``."""
+    outputs ``(H, W)``, `amp` ``(C, H, W)`` and, if `ramped_first` >= 0, `ramped` ``(R, H, W)``
+    (`_fit_ramped`)."""
     for r in lines:
         _fit_line(img[r], omegas[r], windows[r], short, adaptive, unexplained[r], var[r], dc[r], amp[:, r], misfit[r],
-                  offset[r])
+                  offset[r], ramped_first, ramped[:, r] if ramped_first >= 0 else ramped[:, 0])
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
-                      albedo: str | None = "steps", workers: int | None = None) -> Demodulated:
+                      albedo: str | None = "steps", ramped: range | None = None,
+                      workers: int | None = None) -> Demodulated:
     """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
 
     The capture is first divided by the sharp steps of its albedo (`normalise_albedo`), which
@@ -552,6 +677,10 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         Albedo estimate the capture is divided by before the fit (`normalise_albedo`; the
         outputs are multiplied back, so they stay in image units and the ratios the decoder
         takes are those of the normalised capture).  None: no normalisation.
+    ramped : range, optional
+        Also fit these carriers (indices into `Carriers.frequencies`: a phase channel's) in
+        centred windows of `RAMPED_PERIODS` spacing periods with a ramp per carrier
+        (`_fit_ramped`): `Demodulated.ramped`.
     workers : int, optional
         Threads fitting lines in parallel (default: `default_workers`).
 
@@ -573,10 +702,14 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     omegas = np.ascontiguousarray(2 * np.pi * carriers.line_frequencies(slice(0, h)), dtype=np.float64)
     unexplained, var, dc, misfit, offset = (np.empty((h, w), dtype=np.float32) for _ in range(5))
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
+    first = -1 if ramped is None or len(ramped) == 0 else ramped[0]
+    ramp_amp = np.empty((len(ramped), h, w) if first >= 0 else (1, 1, w), dtype=np.float32)
     over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit,
-                                       offset), h, workers)
+                                       offset, first, ramp_amp), h, workers)
     if gain is not None:  # back to image units; every ratio (what the decoder uses) is unchanged
         amp *= gain[None]
+        if first >= 0:
+            ramp_amp *= gain[None]
         dc *= gain
         unexplained *= gain * gain
         var *= gain * gain
@@ -584,7 +717,7 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
     noise = np.sqrt(2 * unexplained / dof[:, None])
     return Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise,
-                       offset=offset)
+                       offset=offset, ramped=ramp_amp if first >= 0 else None)
 
 
 #: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`;
@@ -1035,11 +1168,13 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     check_exposure(img)
     view = along_carriers(img, spec)
     found = carriers if carriers is not None else detect_carriers(img, spec)
-    out = demodulate_window(view, found, albedo=albedo) if method == "window" else demodulate_bandpass(view, found)
+    ramped = range(spec.bits, spec.bits + len(spec.phase_carriers))  # the phase channel's carriers
+    out = (demodulate_window(view, found, albedo=albedo, ramped=ramped) if method == "window"
+           else demodulate_bandpass(view, found))
     if spec.orientation == "columns":
         def back(a: NDArray | None) -> NDArray | None:
             return None if a is None else np.ascontiguousarray(np.swapaxes(a, -1, -2))
 
         out = Demodulated(back(out.amplitude), back(out.dc), back(out.residual), back(out.misfit), back(out.noise),
-                          back(out.offset))
+                          back(out.offset), back(out.ramped))
     return out, found

@@ -22,7 +22,10 @@ Stages, each its own function:
    products of two carriers that land on a phase carrier (`crosstalk`): with the pixel's
    stripe known they are linear in its fringes and are taken out (`phasors`).
 2. `phasors`: per pixel the fringe's phasor ``sum_n I_n exp(i 2 pi n / N)``, unweighted
-   (a DC weight would move each box's phase toward its brighter side).
+   (a DC weight would move each box's phase toward its brighter side), from the envelopes of
+   `phase_envelopes`: away from edges those of the demodulator's two-period windows with a
+   ramp per phase carrier, which follow a fringe that crosses the carriers' lines obliquely
+   (the one-period fits leak its change along the window into each other).
 3. `smooth_phasors`: the phasors summed over a box along both image axes, restricted to runs of
    valid pixels whose stripe changes by at most 1.5 stripes from pixel to pixel (so the box
    does not reach across depth edges).  Along the carriers the box is one demodulation window
@@ -71,7 +74,7 @@ from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
-from sliscan.demodulate import Carriers, Demodulated, along_carriers
+from sliscan.demodulate import RAMPED_PERIODS, Carriers, Demodulated, along_carriers
 from sliscan.patterns import code_bits, fringe_line, fringe_phase, phase_shifts, stripe_codes, stripe_of_line
 from sliscan.types import PatternSpec
 
@@ -231,7 +234,8 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
 
 
 def level_samples(demod: Demodulated, valid: NDArray[np.bool_], stripes: NDArray[np.integer], spec: PatternSpec,
-                  step: int, length: int) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int16]]:
+                  step: int, length: int, envelopes: NDArray[np.float32] | None = None
+                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.int16]]:
     """What `channel_levels` learns from: the phase carriers' envelopes over the DC, each a mean
     along the phase direction, on a grid of every `step`-th pixel (carriers along axis 1).
 
@@ -244,6 +248,8 @@ def level_samples(demod: Demodulated, valid: NDArray[np.bool_], stripes: NDArray
     up to 3 projector lines within each fringe period).  The mean of `length` pixels has
     1 / `length` of the noise variance, and within an eighth of a fringe period every carrier
     keeps the same share (97 %) of its modulation, so the levels' ratios stay those of one pixel.
+    `envelopes` ``(N, H, W)``: the phase carriers' envelopes (`phase_envelopes`), by default
+    `demod`'s.
 
     Returns
     -------
@@ -264,7 +270,8 @@ def level_samples(demod: Demodulated, valid: NDArray[np.bool_], stripes: NDArray
     stripe = gather(stripes).astype(np.int32)
     usable = np.all(gather(valid), axis=0) & (stripe.max(axis=0) - stripe.min(axis=0) <= 1)
     dc = np.sum(gather(demod.dc), axis=0, dtype=np.float64)
-    ratios = np.stack([np.sum(gather(demod.amplitude[spec.bits + k]), axis=0, dtype=np.float64)
+    envelopes = demod.amplitude[spec.bits:spec.bits + n] if envelopes is None else envelopes
+    ratios = np.stack([np.sum(gather(envelopes[k]), axis=0, dtype=np.float64)
                        / np.maximum(dc, 1e-12) for k in range(n)]).astype(np.float32)
     return ratios, usable, stripe[half].astype(np.int16)
 
@@ -308,7 +315,8 @@ def _phasor_rows(amplitude: NDArray[np.float32], first: int, dc: NDArray[np.floa
 
 
 def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels, spec: PatternSpec,
-            stripes: NDArray[np.int16], *, weighted: bool = False) -> NDArray[np.float32]:
+            stripes: NDArray[np.int16], *, weighted: bool = False,
+            envelopes: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """The fringe's phasor at every pixel: ``(3, H, W)`` float32 = (real, imaginary, sum of
     the fringes), 0 where not `valid`; each times the local DC if `weighted`.
 
@@ -326,11 +334,15 @@ def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels,
     smooth albedo a bias of -0.33 / +0.40 projector lines where the log albedo falls / rises
     by more than 0.004 per pixel along the phase direction (unweighted: -0.01 / +0.08), and
     the median error 0.32 lines (unweighted 0.24; README, "Sub-stripe depth from one frame").
+
+    `envelopes` ``(N, H, W)``: the phase carriers' envelopes to use (`phase_envelopes`), by
+    default `demod`'s.
     """
     shifts = phase_shifts(spec)
     mix, shift = _unmixing(levels, *crosstalk(spec))
     out = np.empty((3, *demod.dc.shape), dtype=np.float32)
-    args = (np.ascontiguousarray(demod.amplitude), spec.bits, np.ascontiguousarray(demod.dc), np.ascontiguousarray(valid),
+    amplitude, first = (demod.amplitude, spec.bits) if envelopes is None else (envelopes, 0)
+    args = (np.ascontiguousarray(amplitude), first, np.ascontiguousarray(demod.dc), np.ascontiguousarray(valid),
             np.ascontiguousarray(stripes, dtype=np.int16), levels.gain.astype(np.float64),
             levels.offset.astype(np.float64), mix, shift, np.cos(shifts), np.sin(shifts), weighted)
     over_rows(lambda rows: _phasor_rows(*args, rows, out), out.shape[1])
@@ -913,7 +925,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
            dc_weights: bool = False, bridge: bool = True, recentre_rows: bool = True,
            edge_margin: bool = True, near_jump_contrast: float = NEAR_JUMP_CONTRAST,
            short_run: float = SHORT_RUN, mid_run_contrast: float = MID_RUN_CONTRAST, shadow_sides: bool = True,
-           image: NDArray | None = None) -> Decoded:
+           ramped_windows: bool = True, image: NDArray | None = None) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -994,6 +1006,10 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         centre on the shadow's side of the edge (`shadow_side`), and with `image` those at the
         ends of runs along the carriers whose own light does; if false, keep them (for the
         benchmark's record).
+    ramped_windows : bool
+        Take the phase carriers' envelopes from the demodulator's two-period windows with a ramp
+        per carrier where those lie on one run of the Gray code's line (`phase_envelopes`); if
+        false, from its one-period windows everywhere (for the benchmark's record).
     image : (H, W) array, optional
         The capture (camera orientation), for the test along the carriers.
 
@@ -1012,15 +1028,17 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     max_jump = 1.5 * stripe_lines
     along_phase, radius_phase = max(1, int(round(fringe_cam / 8))) | 1, max(1, int(round(fringe_cam / 4)))
     min_slope = RECENTRE_MIN_CHANGE / carriers.window * 2 * np.pi / spec.fringe_period  # radians per camera pixel
+    coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
+    envelopes, offset = (phase_envelopes(demod, coarse, spec, carriers, max_jump=max_jump) if ramped_windows
+                         else (demod.amplitude[spec.bits:spec.bits + n], demod.offset))
     sample, usable, sample_stripes = level_samples(demod, decoded.valid, decoded.stripe, spec,
                                                    sample_step(decoded.valid, LEVEL_SAMPLES),
-                                                   along_phase if average_levels else 1)
+                                                   along_phase if average_levels else 1, envelopes)
     levels = channel_levels(sample, usable, spec, stripes=sample_stripes if unmix else None)
-    phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe, weighted=dc_weights)
+    phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe, weighted=dc_weights, envelopes=envelopes)
     phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor
-    offset = None if demod.offset is None or not recentre_phase else frame(demod.offset)
+    offset = None if offset is None or not recentre_phase else frame(offset)
     phasor = with_positions(phasor, offset)
-    coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
     # the kept pixels' phase: boxes across the Gray code's gaps (`bridge_gaps`), moved back to
     # their pixel's row (`recentre_along_phase`); the decisions use the plain boxes
     use_fine = smooth and (bridge or recentre_rows)
@@ -1065,7 +1083,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         new = frame(joins) & ~decoded.valid  # the others have their phasors already
         stripes = np.full(new.shape, -1, np.int16)
         stripes[new] = stripe_of_line(frame(mean)[new], spec)
-        extra = phasors(demod, new, levels, spec, stripes, weighted=dc_weights)
+        extra = phasors(demod, new, levels, spec, stripes, weighted=dc_weights, envelopes=envelopes)
         extra = np.stack([frame(p) for p in extra]) if spec.orientation != "rows" else extra
         phasor += with_positions(extra, offset)
         del extra
@@ -1223,6 +1241,65 @@ def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.int32]:
     out = np.empty(line.shape, np.int32)
     over_rows(lambda rows: _run_lengths_rows(line, jump, rows, out), line.shape[0])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _inner_rows(line: NDArray[np.float32], jump: float, reach: int, rows: NDArray[np.intp],
+                out: NDArray[np.bool_]) -> None:
+    """`inner_pixels` on the given `rows`, into `out`."""
+    width = line.shape[1]
+    for r in rows:
+        out[r] = False
+        start = 0
+        while start < width:
+            if not np.isfinite(line[r, start]):
+                start += 1
+                continue
+            end = _run_end(line[r], start, jump)
+            for x in range(start + reach, end - reach):
+                out[r, x] = True
+            start = end
+
+
+def inner_pixels(line: NDArray[np.float32], *, jump: float, reach: int) -> NDArray[np.bool_]:
+    """The pixels of `line` ``(H, W)`` at least `reach` pixels along axis 1 from either end of
+    their run (as in `run_lengths`), ``(H, W)`` bool.
+
+    >>> line = np.array([[1, 2, 3, 4, 5, np.nan, 7, 8, 9, np.nan, 11, np.nan, np.nan]], np.float32)
+    >>> inner_pixels(line, jump=10.0, reach=1).astype(int).tolist()
+    [[0, 1, 1, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]]
+    """
+    out = np.empty(line.shape, bool)
+    over_rows(lambda rows: _inner_rows(np.ascontiguousarray(line, dtype=np.float32), jump, reach, rows, out),
+              line.shape[0])
+    return out
+
+
+def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: PatternSpec, carriers: Carriers, *,
+                    max_jump: float) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    """The phase carriers' envelopes ``(N, H, W)`` and window offsets ``(H, W)`` (camera
+    orientation) that `refine` decodes: `Demodulated.ramped` where its window of two spacing
+    periods lies on one run of `coarse` (the Gray code's line, carriers along axis 1; runs
+    as in `run_lengths` with `max_jump`), the one-period fit's elsewhere.
+
+    Where the fringe crosses the carriers' lines obliquely (a surface turned about the
+    phase direction: a sphere's left and right sides), each phase carrier's envelope changes
+    within the window, and a one-period fit, which takes it for constant, leaks that change
+    into the neighbouring carriers' fits: on a plane turned 60 degrees about the vertical
+    (0.3 projector lines per camera pixel) the line came out 1.9 lines RMS off on a noise-free
+    render (README, "Sub-stripe depth from one frame").  The ramped fit takes the change in, and
+    its envelopes describe the pixel itself (offset 0).  Next to an edge its longer window
+    would reach across, so there the one-period fit's (one-sided) windows stay."""
+    n = len(spec.phase_carriers)
+    own = demod.amplitude[spec.bits:spec.bits + n]
+    if demod.ramped is None:
+        return own, demod.offset
+    frame = lambda a: along_carriers(a, spec)  # noqa: E731
+    reach = int(round(np.max(carriers.line_windows()) * RAMPED_PERIODS)) // 2
+    inner = frame(inner_pixels(coarse, jump=max_jump, reach=reach)) & np.all(np.isfinite(demod.ramped), axis=0)
+    envelopes = np.where(inner[None], demod.ramped, own)
+    offset = None if demod.offset is None else np.where(inner, np.float32(0), demod.offset)
+    return envelopes, offset
 
 
 def near_jumps(line: NDArray[np.float32], *, radius: int, jump: float) -> NDArray[np.bool_]:
