@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.decode import Decoded, _zero_stripe, dark_level, agrees_with_neighbours, two_means
+from sliscan.decode import (LEVEL_PIXELS_KEPT, LEVEL_RESIDUAL, Decoded, _zero_stripe, agrees_with_neighbours,
+                            dark_level, two_means)
 from sliscan.demodulate import Demodulated
 from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
 from sliscan.types import PatternSpec
@@ -154,7 +155,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     reference = demod.amplitude[bits] if spec.pilot is not None else dc
     ratio = demod.amplitude[:bits] / np.maximum(reference, 1e-6)[None]
     lit = _lit(demod, spec, dc, min_modulation, min_snr)
-    levels, spans = _levels(ratio, _sample(lit))
+    explained = lit & (demod.residual <= LEVEL_RESIDUAL)  # the bits' levels from windows the model explains
+    levels, spans = _levels(ratio, _sample(explained if explained.sum() >= LEVEL_PIXELS_KEPT * lit.sum() else lit))
     on_bits = levels >= 0.5
     code = bits_to_code(on_bits)
     stripe = code_to_stripe(code, spec)

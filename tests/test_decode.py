@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sliscan import InputError, patterns, simulate
-from sliscan.decode import agrees_with_neighbours, decode, two_means
+from sliscan.decode import FrameLevels, agrees_with_neighbours, decode, two_means
+from sliscan.demodulate import Demodulated
 from sliscan.demodulate import demodulate
 from sliscan.evaluate import accuracy, true_stripes
 from sliscan.pipeline import Scanner
@@ -280,3 +281,26 @@ def test_bit_confidence_is_each_bit_margin_and_confidence_their_minimum(small_ri
     # valid pixels decide most bits well clear of their thresholds (one unclear bit is allowed
     # on a stripe border, so there is no per-pixel bound)
     assert np.median(bits[:, decoded.valid]) > 0.5
+
+
+def test_bit_levels_are_learned_where_the_windows_are_explained(rng):
+    # four bits on 0.02 (off) / 0.13 (on) of the DC, half the pixels on; on 5 % of them the
+    # lowest carrier's envelope is 1.5-6 times the DC, where its window is badly explained
+    # (residual 0.9: a DC changing 16-fold along a dim receding plane, README).  Learned from
+    # every lit pixel, two-means takes that tail for the "on" cluster; from the explained ones
+    # the spans are the true 0.11
+    spec = patterns.default_spec((1024, 768))
+    shape = (200, 300)
+    on = rng.random((4, *shape)) < 0.5
+    amplitude = np.where(on, 0.13, 0.02).astype(np.float32) + rng.normal(0, 0.003, (4, *shape)).astype(np.float32)
+    tail = rng.random(shape) < 0.05
+    amplitude[3][tail] = rng.uniform(1.5, 6.0, tail.sum())
+    residual = np.where(tail, 0.9, 0.01).astype(np.float32)
+    dc = np.ones(shape, np.float32)
+
+    def spans(res):
+        demod = Demodulated(amplitude=amplitude, dc=dc, residual=res)
+        return FrameLevels.of(demod, spec, min_modulation=0.3, min_snr=0.0).bits.span
+
+    assert spans(np.zeros(shape, np.float32))[3] > 1.0  # measured 3.96 (seed 0)
+    np.testing.assert_allclose(spans(residual), 0.11, atol=0.005)

@@ -1213,66 +1213,60 @@ def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: flo
 
 
 @numba.njit(cache=True, nogil=True)
-def _run_lengths_rows(line: NDArray[np.float32], jump: float, rows: NDArray[np.intp], out: NDArray[np.int32]) -> None:
-    """`run_lengths` on the given `rows`, into `out`."""
+def _run_bounds_rows(line: NDArray[np.float32], jump: float, rows: NDArray[np.intp], first: NDArray[np.int32],
+                     end: NDArray[np.int32]) -> None:
+    """`run_bounds` on the given `rows`, into `first` and `end`."""
     width = line.shape[1]
     for r in rows:
         start = 0
         while start < width:
             if not np.isfinite(line[r, start]):
-                out[r, start] = 0
+                first[r, start] = end[r, start] = start
                 start += 1
                 continue
-            end = _run_end(line[r], start, jump)
-            for x in range(start, end):
-                out[r, x] = end - start
-            start = end
+            stop = _run_end(line[r], start, jump)
+            first[r, start:stop], end[r, start:stop] = start, stop
+            start = stop
+
+
+def run_bounds(line: NDArray[np.float32], *, jump: float) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """The first pixel and one past the last of the run along axis 1 that each finite pixel of
+    `line` ``(H, W)`` lies in, two ``(H, W)`` int32 arrays; a run ends at a NaN or where
+    neighbours differ by more than `jump`; a NaN pixel's run is empty (both its own column).
+
+    >>> first, end = run_bounds(np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32), jump=10.0)
+    >>> first.tolist(), end.tolist()
+    ([[0, 0, 2, 3, 4, 4, 4]], [[2, 2, 2, 4, 7, 7, 7]])
+    """
+    line = np.ascontiguousarray(line, dtype=np.float32)
+    first, end = np.empty(line.shape, np.int32), np.empty(line.shape, np.int32)
+    over_rows(lambda rows: _run_bounds_rows(line, jump, rows, first, end), line.shape[0])
+    return first, end
 
 
 def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.int32]:
     """Length (pixels) of the run along axis 1 that each finite pixel of `line` ``(H, W)`` lies
-    in, ``(H, W)`` int32; a run ends at a NaN or where neighbours differ by more than `jump`; 0
-    on NaN.
+    in (`run_bounds`), ``(H, W)`` int32; 0 on NaN.
 
     >>> line = np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32)
     >>> run_lengths(line, jump=10.0).tolist()
     [[2, 2, 0, 1, 3, 3, 3]]
     """
-    out = np.empty(line.shape, np.int32)
-    over_rows(lambda rows: _run_lengths_rows(line, jump, rows, out), line.shape[0])
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _inner_rows(line: NDArray[np.float32], jump: float, reach: int, rows: NDArray[np.intp],
-                out: NDArray[np.bool_]) -> None:
-    """`inner_pixels` on the given `rows`, into `out`."""
-    width = line.shape[1]
-    for r in rows:
-        out[r] = False
-        start = 0
-        while start < width:
-            if not np.isfinite(line[r, start]):
-                start += 1
-                continue
-            end = _run_end(line[r], start, jump)
-            for x in range(start + reach, end - reach):
-                out[r, x] = True
-            start = end
+    first, end = run_bounds(line, jump=jump)
+    return end - first
 
 
 def inner_pixels(line: NDArray[np.float32], *, jump: float, reach: int) -> NDArray[np.bool_]:
     """The pixels of `line` ``(H, W)`` at least `reach` pixels along axis 1 from either end of
-    their run (as in `run_lengths`), ``(H, W)`` bool.
+    their run (`run_bounds`), ``(H, W)`` bool.
 
     >>> line = np.array([[1, 2, 3, 4, 5, np.nan, 7, 8, 9, np.nan, 11, np.nan, np.nan]], np.float32)
     >>> inner_pixels(line, jump=10.0, reach=1).astype(int).tolist()
     [[0, 1, 1, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]]
     """
-    out = np.empty(line.shape, bool)
-    over_rows(lambda rows: _inner_rows(np.ascontiguousarray(line, dtype=np.float32), jump, reach, rows, out),
-              line.shape[0])
-    return out
+    first, end = run_bounds(line, jump=jump)
+    x = np.arange(line.shape[1], dtype=np.int32)
+    return (x - first >= reach) & (end - 1 - x >= reach)
 
 
 def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: PatternSpec, carriers: Carriers, *,
