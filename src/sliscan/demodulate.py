@@ -386,7 +386,8 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
               ramped_first: int, ramped: NDArray[np.float32]) -> None:
     """Best least-squares window fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` at every
     pixel of one line; writes the outputs of `demodulate_window` for it (``(W,)`` each, `amp`
-    ``(C, W)``), in image units.
+    ``(C, W)``), in image units, and if `ramped_first` >= 0 those of `_fit_ramped` (`ramped`
+    ``(R, W)``).
 
     The line is divided by its flat field, then every window sum comes from running sums.
     Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
@@ -519,13 +520,17 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
 
 
 #: The window of `_fit_ramped`, in spacing periods.  Over one period a ramp per carrier makes
-#: the fit ill-conditioned (condition number 7e3 against 14 without; README, "Sub-stripe depth
-#: from one frame"); over two, 6.
+#: the fit ill-conditioned (condition number 6.6e3 against 14 without, in the 1D model of the
+#: README's "Sub-stripe depth from one frame"); over two, 5.7; over 1.5 it lost on the captures.
 RAMPED_PERIODS = 2
-#: `_fit_ramped` leaves out the pixels where the one-period fit of either half of its window
-#: leaves more than this times the unexplained energy of the pixel's centred one.
+#: `_fit_ramped` leaves out the pixels where the one-period fits at its window's two ends and
+#: at the pixel leave unexplained energies (relative to the flat-fielded line's DC of 1) more
+#: than `RAMPED_MISFIT` times apart plus `RAMPED_FLOOR` (0.5 % of the DC, squared: noise-free
+#: captures, whose fits leave next to nothing, would otherwise differ by any factor).
 RAMPED_MISFIT = 2.0
 RAMPED_FLOOR = 2.5e-5
+#: `_fit_ramped` measures the local carrier scale every this many window starts (it changes
+#: slowly along a line; each measurement is an arctangent per carrier).
 RAMPED_SCALE_STEP = 8
 
 
