@@ -112,7 +112,7 @@ DECODER_VARIANTS = {
                                                          dict(fringe_options=dict(ramped_windows=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
-    "thesis 4-bit (decided by order)": ("thesis 4-bit", dict(decode_options=dict(order=True))),
+    "thesis 4-bit (per-pixel decisions)": ("thesis 4-bit", dict(decode_options=dict(order=False))),
 }
 
 

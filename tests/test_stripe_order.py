@@ -131,7 +131,7 @@ def test_order_decodes_more_of_the_sphere_than_per_pixel_decisions(small_rig):
     capture = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(spec), realistic(3))
     results = {name: accuracy(Scanner(spec, small_rig.calibration, decode_options=dict(order=order)).scan(capture.image),
                               capture.truth, spec, small_rig.calibration)
-               for name, order in (("order", None), ("pixel", False))}
+               for name, order in (("order", True), ("pixel", False))}
     order, pixel = results["order"], results["pixel"]
     assert order.stripe_accuracy >= pixel.stripe_accuracy + 0.015, results
     assert order.completeness >= pixel.completeness + 0.015, results
@@ -139,18 +139,27 @@ def test_order_decodes_more_of_the_sphere_than_per_pixel_decisions(small_rig):
     assert order.median_mm <= 1.1 * order.oracle_median_mm
 
 
-def test_decode_by_order_is_the_default_only_without_the_zero_code(small_rig):
-    """sliscan's patterns (no all-zero code) are decided by order; the thesis's per pixel,
-    unless asked."""
+def test_decode_by_order_is_the_default_for_the_thesis_pattern_too(small_rig):
+    """Every single-shot pattern is decided by order unless asked otherwise, the thesis's too
+    (its lit zero stripe, which looks like shadow, is added after the order by `_zero_stripe`).
+    The thesis's pattern on the sphere under issue 2's conditions (640x480, seed 3): measured
+    78.6 % of the lit pixels on the right stripe against 67.6 % per pixel, completeness 81.1 %
+    against 69.7 %, more than one stripe off 0.14 % both (seeds 1, 2 and the steps: +6 to +10
+    points).  Asserted with room for other renders: at least 5 points more of both, far
+    stripes under 0.5 %."""
     capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(SPEC), realistic(1))
     demod, _ = demodulate(capture.image, SPEC)
-    default, forced, pixel = (decode(demod, SPEC, order=o) for o in (None, True, False))
-    assert np.array_equal(default.stripe, forced.stripe) and not np.array_equal(default.valid, pixel.valid)
+    default, forced = decode(demod, SPEC), decode(demod, SPEC, order=True)
+    assert np.array_equal(default.stripe, forced.stripe) and np.array_equal(default.valid, forced.valid)
     thesis = patterns.thesis_spec((1024, 768))
-    capture = simulate.render(small_rig, simulate.plane_scene(), patterns.render_pattern(thesis), realistic(1))
-    demod, _ = demodulate(capture.image, thesis)
-    default, pixel = decode(demod, thesis), decode(demod, thesis, order=False)
-    assert np.array_equal(default.stripe, pixel.stripe) and np.array_equal(default.valid, pixel.valid)
+    capture = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(thesis), realistic(3))
+    results = {name: accuracy(Scanner(thesis, small_rig.calibration, decode_options=options).scan(capture.image),
+                              capture.truth, thesis, small_rig.calibration)
+               for name, options in (("default", {}), ("pixel", dict(order=False)))}
+    default, pixel = results["default"], results["pixel"]
+    assert default.stripe_accuracy >= pixel.stripe_accuracy + 0.05, results
+    assert default.completeness >= pixel.completeness + 0.05, results
+    assert default.far_stripe <= 0.005, results
 
 
 def test_anchored_runs_keep_the_runs_their_own_pixels_vouch_for():

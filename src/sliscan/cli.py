@@ -158,7 +158,7 @@ _decisions_option = click.option(
     "--decisions", type=click.Choice(list(DECISIONS)), default="auto", show_default=True,
     help="Single-shot patterns: decide the stripes down each column by the order they come in (order; "
          "more complete, 2-3x slower to decode), each pixel from its own bits (pixel; faster), or auto "
-         "(order for sliscan's patterns, pixel for the thesis's).")
+         "(order; the baseband method decides per pixel).")
 
 _albedo_steps_option = click.option(
     "--albedo-steps/--no-albedo-steps", default=True, show_default=True,

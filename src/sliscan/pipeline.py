@@ -127,8 +127,8 @@ def baseline_direction(calibration: Calibration) -> str:
 METHODS = ("window", "bandpass", "baseband")
 
 #: How a single-shot pattern's stripes are decided (`sliscan scan --decisions`): the
-#: `decode.decode` options of each choice.  ``auto``: by order for sliscan's patterns, per pixel
-#: for the thesis's (`decode.decode`'s ``order=None``); ``order``: down each column as a whole
+#: `decode.decode` options of each choice.  ``auto``: `decode.decode`'s default, by order (the
+#: real-time path decides per pixel whatever is asked); ``order``: down each column as a whole
 #: (`sliscan.stripe_order`), the more complete and about 2-3x slower decoding; ``pixel``: each
 #: pixel from its own bits, the faster one.
 DECISIONS: dict[str, dict[str, Any]] = {"auto": {}, "order": {"order": True}, "pixel": {"order": False}}
