@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sliscan import InputError, patterns, simulate
-from sliscan.decode import FrameLevels, agrees_with_neighbours, decode, two_means
+from sliscan.decode import FrameLevels, _zero_stripe, agrees_with_neighbours, decode, two_means
 from sliscan.demodulate import Demodulated
 from sliscan.demodulate import demodulate
 from sliscan.evaluate import accuracy, true_stripes
@@ -95,6 +95,24 @@ def test_thesis_pattern_zero_stripe_under_a_smooth_albedo(small_rig):
     assert (taken & zero).sum() >= 0.7 * zero.sum()
     assert (taken & lit & ~zero).sum() <= 0.005 * lit.sum()
     assert (taken & ~lit).sum() <= 0.006 * lit.sum()
+
+
+def test_zero_stripe_walk_crosses_dips_of_a_few_lines_but_stops_at_the_light():
+    """The walk from stripe 1 toward stripe 0 closes the DC's dips of a few lines (one-sided
+    windows whose DC is their own side's, where the albedo curves): such a dip does not stop
+    it; the edge of the projector's light does, a 5:1 drop or a dim surface's 1.8:1 within a
+    few lines (`ZERO_STRIPE_EDGE`), and so does the limit of 1.2 stripe-1 heights."""
+    spec = patterns.thesis_spec((1024, 768))
+    stripe = np.full((240, 8), -1, np.int16)
+    stripe[160:220], stripe[220:] = 1, 2  # stripe 1 is 60 lines tall, its quarter 15
+    for ambient in (0.2, 0.55):
+        dc = np.full(stripe.shape, ambient, np.float32)
+        dc[110:] = 1.0  # the zero stripe lit from line 110
+        dc[130:133] = 0.3  # a dip of three lines
+        zero = _zero_stripe(stripe, dc, spec, min_dc=0.35)
+        assert zero[110:160].all() and not zero[:109].any(), ambient
+    dc[:110] = 1.0  # lit all the way up: the walk still stops 72 lines above stripe 1
+    assert not _zero_stripe(stripe, dc, spec, min_dc=0.35)[:87].any()
 
 
 def test_scanner_rejects_wrong_image_size(small_rig):
