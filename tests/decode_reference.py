@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.decode import (LEVEL_PIXELS_KEPT, LEVEL_RESIDUAL, Decoded, _zero_stripe, agrees_with_neighbours,
-                            dark_level, two_means)
+from sliscan.decode import (LEVEL_PIXELS_KEPT, LEVEL_RESIDUAL, ZERO_STRIPE_MIN_DC, Decoded, _zero_stripe,
+                            agrees_with_neighbours, dark_level, two_means)
 from sliscan.demodulate import Demodulated
 from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
 from sliscan.types import PatternSpec
@@ -112,7 +112,7 @@ def _flip_is_adjacent(code: NDArray[np.int64], stripe: NDArray[np.int64], unclea
 
 def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3,
            min_confidence: float = 0.1, min_snr: float = 3.0, stripe_borders: bool = True, max_residual: float = 0.6,
-           max_misfit: float = 0.25, zero_code_dc: float = 0.35, neighbour_radius: int = 3,
+           max_misfit: float = 0.25, zero_code_dc: float = ZERO_STRIPE_MIN_DC, neighbour_radius: int = 3,
            border_reach: int = 10) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sliscan import InputError, patterns, simulate
-from sliscan.decode import FrameLevels, _zero_stripe, agrees_with_neighbours, decode, two_means
+from sliscan.decode import ZERO_STRIPE_MIN_DC, FrameLevels, _zero_stripe, agrees_with_neighbours, decode, two_means
 from sliscan.demodulate import Demodulated
 from sliscan.demodulate import demodulate
 from sliscan.evaluate import accuracy, true_stripes
@@ -78,9 +78,10 @@ def test_thesis_pattern_zero_stripe_under_a_smooth_albedo(small_rig):
 
     Sphere scene, smooth albedo 0.15-1.0, 10 % ambient, gamma 2.2, blur 1 px (seed 2, not the
     seed the rule was set on): the walk against stripe 1's DC alone found 46 % of the zero
-    stripe; the drop rule and the spread along the carriers find 81 %.  Pixels of other stripes
-    or beyond the light taken as stripe 0 stay under half a percent of the lit pixels (0.2 %
-    and 0.4 % measured).
+    stripe; the drop rule and the spread along the carriers 81 %; with the floors against
+    stripe 1's DC lowered to backstops (`ZERO_STRIPE_MIN_DC`, `ZERO_STRIPE_SPREAD`) 97 %.
+    Pixels of other stripes or beyond the light taken as stripe 0 stay under half a percent of
+    the lit pixels (0.10 % and 0.13 % measured).
     """
     spec = patterns.thesis_spec((1024, 768))
     conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=2), ambient=0.1,
@@ -92,7 +93,7 @@ def test_thesis_pattern_zero_stripe_under_a_smooth_albedo(small_rig):
     lit, zero = truth >= 0, truth == 0
     taken = decoded.valid & (decoded.stripe == 0)
     assert zero.sum() > 10_000
-    assert (taken & zero).sum() >= 0.7 * zero.sum()
+    assert (taken & zero).sum() >= 0.9 * zero.sum()
     assert (taken & lit & ~zero).sum() <= 0.005 * lit.sum()
     assert (taken & ~lit).sum() <= 0.006 * lit.sum()
 
@@ -113,6 +114,25 @@ def test_zero_stripe_walk_crosses_dips_of_a_few_lines_but_stops_at_the_light():
         assert zero[110:160].all() and not zero[:109].any(), ambient
     dc[:110] = 1.0  # lit all the way up: the walk still stops 72 lines above stripe 1
     assert not _zero_stripe(stripe, dc, spec, min_dc=0.35)[:87].any()
+
+
+def test_zero_stripe_walk_goes_on_over_a_darker_albedo_and_behind_a_hidden_stripe_one():
+    """The light's edge stops the walk, not the albedo: above stripe 1 the albedo falls
+    smoothly to 0.3 of stripe 1's (the 0.35 floor of before stopped it there), and the lit
+    zero stripe is found to the edge of the light (ambient 10 %, lit 32 %).  Columns where an
+    object hides stripe 1 get the zero stripe along the carriers from the walked ones, even on
+    a surface at 0.35 of stripe 1's DC (`ZERO_STRIPE_SPREAD`)."""
+    spec = patterns.thesis_spec((1024, 768))
+    stripe = np.full((240, 8), -1, np.int16)
+    stripe[160:220, :4], stripe[220:, :4] = 1, 2  # stripe 1 is 60 lines tall in columns 0-3
+    albedo = np.interp(np.arange(240), [120, 160], [0.3, 1.0])[:, None] * np.ones((1, 8))
+    albedo[:, 4:] = 0.35  # columns 4-7: a darker surface, its stripes 1 and 2 hidden
+    light = np.where(np.arange(240) >= 110, 0.32, 0.1)[:, None]  # lit from line 110
+    dc = (albedo * light).astype(np.float32)
+    zero = _zero_stripe(stripe, dc, spec, min_dc=ZERO_STRIPE_MIN_DC)
+    assert zero[110:160, :4].all() and not zero[:109].any()
+    assert zero[110:160, 4:].all()
+    assert not _zero_stripe(stripe, dc, spec, min_dc=0.35)[110:120, :4].any()
 
 
 def test_scanner_rejects_wrong_image_size(small_rig):

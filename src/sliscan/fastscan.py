@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from sliscan._threads import over_rows
 from sliscan._validate import InputError
 from sliscan.baseband import Baseband
-from sliscan.decode import FrameLevels, _stripe_of_code, _zero_stripe, is_settled
+from sliscan.decode import ZERO_STRIPE_MIN_DC, FrameLevels, _stripe_of_code, _zero_stripe, is_settled
 from sliscan.demodulate import Demodulated
 from sliscan.patterns import stripe_center
 from sliscan.reconstruct import MeasurableTest, Triangulator
@@ -300,8 +300,8 @@ def frame_levels(baseband: Baseband, spec: PatternSpec, *, min_modulation: float
 
 def scan_baseband(baseband: Baseband, levels: FrameLevels, spec: PatternSpec, geometry: StripeGeometry,
                   shape: tuple[int, int], *, min_modulation: float = 0.3, min_confidence: float = 0.1,
-                  stripe_borders: bool = True, zero_code_dc: float = 0.35, workers: int | None = None,
-                  out: ScanResult | None = None) -> ScanResult:
+                  stripe_borders: bool = True, zero_code_dc: float = ZERO_STRIPE_MIN_DC,
+                  workers: int | None = None, out: ScanResult | None = None) -> ScanResult:
     """Points of one frame from its baseband envelopes (see the module docstring).
 
     Parameters
