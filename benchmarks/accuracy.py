@@ -65,6 +65,9 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
         for weight in (1.5, 2.0):
             specs[f"4-bit + phase (phase weight {weight:g})"] = base.with_(
                 phase_weight=weight, b_p=0.5 / (base.bits + len(base.phase_carriers) * weight))
+        # the same carriers with the drive stretched over 0.2-1.0 (twenty-seventh session): 1.24x the
+        # modulation; the pixels both keep gain, but more marginal pixels are kept (README)
+        specs["4-bit + phase (drive 0.2-1)"] = patterns.stretch_drive(base, 0.2)
         # a finer fringe (1.5 stripes instead of 2): lower noise in projector lines, but a Gray
         # code off by one stripe deep inside a stripe no longer unwraps to the right period
         specs["4-bit + phase (period 1.5 stripes)"] = base.with_(phase_period=1.5 * base.phase_lines / base.stripes)

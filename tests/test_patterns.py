@@ -92,6 +92,12 @@ def test_render_is_quantised_and_gamma_precorrected():
 def test_pattern_out_of_range_raises():
     with pytest.raises(InputError, match="pattern leaves"):
         patterns.linear_pattern(PatternSpec(b_p=0.2))
+    spec = patterns.phase_spec((1024, 768))  # its own range, 0.25-0.89, moved up by 0.11
+    message = r"pattern leaves \[0, 1\]: a_p 0.61 and b_p 0.0714286 make it span \[0.360, 1.003\]"
+    with pytest.raises(InputError, match=message):
+        patterns.linear_pattern(spec.with_(a_p=spec.a_p + 0.11))
+    with pytest.raises(InputError, match="drive range must satisfy"):
+        patterns.stretch_drive(spec, 0.5, 0.4)
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -122,6 +128,19 @@ def test_default_spec_puts_msb_on_highest_carrier_and_skips_zero_code():
     assert spec.carriers == (128.0, 96.0, 64.0, 32.0) and spec.skip_zero_code and spec.pilot is None
     low, high = patterns.pattern_range(spec)
     assert low >= 0 and high <= 1
+
+
+@pytest.mark.parametrize("make", [patterns.thesis_spec, patterns.default_spec, patterns.phase_spec])
+def test_pattern_range_is_the_patterns_own_and_stretch_drive_fills_a_range(make):
+    """`pattern_range` is the linear image's own extremes; `stretch_drive` maps them onto the
+    range asked for by one factor on every carrier (the bits' levels keep their ratios)."""
+    spec = make((1024, 768))
+    image = patterns.linear_pattern(spec)
+    assert patterns.pattern_range(spec) == (image.min(), image.max())
+    stretched = patterns.stretch_drive(spec, 0.2, 1.0)
+    assert patterns.pattern_range(stretched) == pytest.approx((0.2, 1.0), abs=1e-12)
+    np.testing.assert_allclose((patterns.linear_pattern(stretched) - stretched.a_p) / stretched.b_p,
+                               (image - spec.a_p) / spec.b_p, atol=1e-9)
 
 
 def test_save_pattern_writes_png_and_json(tmp_path):

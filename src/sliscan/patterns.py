@@ -166,25 +166,38 @@ def carrier_waves(spec: PatternSpec) -> NDArray[np.float64]:
 
 
 def pattern_range(spec: PatternSpec) -> tuple[float, float]:
-    """Smallest and largest value eq. 3.1 can reach before gamma and quantisation."""
-    swing = spec.b_p * float(np.sum(np.abs(spec.all_weights)))
-    if spec.kind == "modified_composite":
-        swing += abs(spec.modified_amplitude)
-    return spec.a_p - swing, spec.a_p + swing
+    """Smallest and largest value eq. 3.1 reaches before gamma and quantisation.
 
+    The pattern's own extremes, not the bound ``a_p +/- b_p * sum(|w_n|)`` of every carrier
+    peaking at once, which the bits' codes and the fringes never reach together: sliscan's
+    phase pattern spans 0.25-0.89 under that bound's [0, 1] (see `stretch_drive`).
 
-def linear_pattern(spec: PatternSpec) -> NDArray[np.float64]:
-    """Eq. 3.1 as linear projector drive, ``(H_p, W_p)`` float64, before gamma and quantisation.
-
-    ``carrier_only`` turns every bit on everywhere (fig. 3.9); ``modified_composite`` adds
-    ``modified_amplitude * sin(2 pi modified_frequency y / L)`` along the phase direction (6.2).
+    >>> [round(v, 3) for v in pattern_range(phase_spec((1024, 768)))]
+    [0.25, 0.893]
     """
-    low, high = pattern_range(spec)
-    if low < -1e-9 or high > 1 + 1e-9:
-        raise InputError(
-            f"pattern leaves [0, 1]: a_p +/- b_p*sum(weights) spans [{low:.3f}, {high:.3f}]; "
-            "lower b_p or the weights"
-        )
+    image = _eq31(spec)
+    return float(image.min()), float(image.max())
+
+
+def stretch_drive(spec: PatternSpec, low: float = 0.0, high: float = 1.0) -> PatternSpec:
+    """`spec` with `a_p` and `b_p` set so that the pattern spans exactly ``[low, high]``.
+
+    More modulation for the same projector: every carrier's amplitude grows by the same
+    factor, so the decoder's levels and crosstalk model hold unchanged.
+
+    >>> spec = stretch_drive(phase_spec((1024, 768)), 0.2)
+    >>> [round(v, 3) for v in pattern_range(spec)], round(spec.b_p / phase_spec((1024, 768)).b_p, 3)
+    ([0.2, 1.0], 1.244)
+    """
+    if not 0 <= low < high <= 1:
+        raise InputError(f"the drive range must satisfy 0 <= low < high <= 1, got [{low:g}, {high:g}]")
+    lowest, highest = pattern_range(spec)
+    scale = (high - low) / (highest - lowest)
+    return spec.with_(b_p=spec.b_p * scale, a_p=low + (spec.a_p - lowest) * scale)
+
+
+def _eq31(spec: PatternSpec) -> NDArray[np.float64]:
+    """Eq. 3.1 (and the modified pattern's sine), unchecked: `linear_pattern`'s image."""
     waves = carrier_waves(spec)  # (C, O)
     weights = np.asarray(spec.all_weights)[:, None]
     if spec.kind == "carrier_only":
@@ -197,6 +210,23 @@ def linear_pattern(spec: PatternSpec) -> NDArray[np.float64]:
         line = np.arange(spec.phase_lines, dtype=np.float64)
         image += spec.modified_amplitude * np.sin(2 * np.pi * spec.modified_frequency * line / spec.phase_lines)[:, None]
     return image if spec.orientation == "rows" else image.T
+
+
+def linear_pattern(spec: PatternSpec) -> NDArray[np.float64]:
+    """Eq. 3.1 as linear projector drive, ``(H_p, W_p)`` float64, before gamma and quantisation.
+
+    ``carrier_only`` turns every bit on everywhere (fig. 3.9); ``modified_composite`` adds
+    ``modified_amplitude * sin(2 pi modified_frequency y / L)`` along the phase direction (6.2).
+    Raises `InputError` where the pattern leaves [0, 1] (`pattern_range`).
+    """
+    image = _eq31(spec)
+    low, high = float(image.min()), float(image.max())
+    if low < -1e-9 or high > 1 + 1e-9:
+        raise InputError(
+            f"pattern leaves [0, 1]: a_p {spec.a_p:g} and b_p {spec.b_p:g} make it span [{low:.3f}, {high:.3f}]; "
+            "lower b_p or the weights, or move a_p (patterns.stretch_drive fits them to a range)"
+        )
+    return image
 
 
 def precorrect(linear: ArrayLike, spec: PatternSpec) -> NDArray[np.float64]:
