@@ -267,6 +267,22 @@ def test_pattern_with_a_phase_channel(tmp_path: Path) -> None:
     assert bad.returncode == 2 and "at least 3 phase carriers" in bad.stderr and not (tmp_path / "x.png").exists()
 
 
+def test_pattern_drive_range(tmp_path: Path) -> None:
+    """--drive fits A_p and B_p to the pattern's own extremes (0.25-0.89 for the phase pattern by
+    default): 0.2,1 gives 1.244 times the modulation; the image spans the range to a grey level."""
+    ok("pattern", "composite", "--projector", "1024x768", "--phase", "--drive", "0.2,1", "-o", "cp.png", cwd=tmp_path)
+    spec = PatternSpec.load(tmp_path / "cp.json")
+    assert patterns.pattern_range(spec) == pytest.approx((0.2, 1.0))
+    assert spec.b_p == pytest.approx(0.5 / 7 * 1.244, rel=1e-3)
+    image = read_image(tmp_path / "cp.png")
+    assert abs(image.min() - 0.2) <= 0.5 / 255 and image.max() == 1.0
+    for args, message in ((("--drive", "0.2,1", "--bp", "0.1"), "leave out --ap and --bp"),
+                          (("--drive", "0.2,0.5,1"), "takes LOW,HIGH"),
+                          (("--drive", "0.6,0.4"), "0 <= low < high <= 1")):
+        bad = sliscan("pattern", "composite", "--projector", "1024x768", *args, "-o", "x.png", cwd=tmp_path)
+        assert bad.returncode == 2 and message in bad.stderr and not (tmp_path / "x.png").exists(), bad.stderr
+
+
 def test_existing_outputs_are_replaced_only_with_overwrite(plane: tuple[Path, str], tmp_path: Path) -> None:
     source, _ = plane
     for name in ("cp.json", "rig.json", "capture.png"):

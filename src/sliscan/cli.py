@@ -358,7 +358,12 @@ _pattern_options = _options(
     click.option("--weights", type=FLOATS, help="Amplitude weight of each bit carrier [all 1]."),
     click.option("--ap", "a_p", type=click.FloatRange(0, 1), help="Mean drive A_p of eq. 3.1 [0.5]."),
     click.option("--bp", "b_p", type=POSITIVE,
-                 help="Carrier amplitude B_p of eq. 3.1 [the largest that keeps the pattern in [0, 1]]."),
+                 help="Carrier amplitude B_p of eq. 3.1 [the largest that keeps the pattern in [0, 1] with "
+                      "every carrier peaking at once; --drive uses the pattern's own extremes]."),
+    click.option("--drive", type=FLOATS,
+                 help="LOW,HIGH: set A_p and B_p so that the pattern spans exactly this range of linear "
+                      "drive, e.g. 0.2,1 (its own extremes: its carriers seldom peak together; README, "
+                      "'Sub-stripe depth from one frame'); excludes --ap and --bp."),
     click.option("--gamma", type=POSITIVE, help="Gamma pre-correction of the projector [1: none]."),
     click.option("--orientation", type=click.Choice(["rows", "columns"]), default="rows", show_default=True,
                  help="Projector coordinate the stripes code."),
@@ -399,8 +404,13 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
                   b_p: float | None, gamma: float | None, orientation: str, pilot: float | str | None,
                   skip_zero_code: bool | None, phase: bool = False, phase_carriers: tuple[float, ...] | None = None,
                   phase_period: float | None = None, characterization: Path | None = None,
-                  modified_frequency: float | None = None, modified_amplitude: float | None = None) -> PatternSpec:
+                  modified_frequency: float | None = None, modified_amplitude: float | None = None,
+                  drive: tuple[float, ...] | None = None) -> PatternSpec:
     """The PatternSpec the `sliscan pattern` options describe (see `pattern composite --help`)."""
+    if drive is not None and (a_p is not None or b_p is not None):
+        raise click.UsageError("--drive sets A_p and B_p; leave out --ap and --bp")
+    if drive is not None and len(drive) != 2:
+        raise click.UsageError(f"--drive takes LOW,HIGH, got {len(drive)} values")
     if characterization is not None and gamma is not None:
         raise click.UsageError("--gamma and --from-characterization both set the pre-correction; give one")
     if thesis and (bits is not None or carriers is not None):
@@ -432,11 +442,11 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
         spec = spec.with_(modified_amplitude=amplitude, b_p=b_p if b_p is not None else _largest_bp(spec, amplitude))
     elif b_p is not None or spec.phase_carriers or any(v is not None for v in (bits, carriers, weights, a_p, pilot)):
         spec = spec.with_(b_p=b_p if b_p is not None else _largest_bp(spec))  # the swing changed: fit B_p again
-    if characterization is None:
-        return spec
-    measured = photometry.Characterization.load(characterization)
-    with _about(characterization):  # compensated weights keep their sum, so B_p still fits
-        return measured.apply(spec)
+    if characterization is not None:
+        measured = photometry.Characterization.load(characterization)
+        with _about(characterization):  # compensated weights keep their sum, so B_p still fits
+            spec = measured.apply(spec)
+    return spec if drive is None else patterns.stretch_drive(spec, *drive)
 
 
 def _write_pattern(output: Path, spec: PatternSpec, *, overwrite: bool, inputs: Sequence[Path | None] = ()) -> None:

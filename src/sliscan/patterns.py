@@ -183,7 +183,7 @@ def stretch_drive(spec: PatternSpec, low: float = 0.0, high: float = 1.0) -> Pat
     """`spec` with `a_p` and `b_p` set so that the pattern spans exactly ``[low, high]``.
 
     More modulation for the same projector: every carrier's amplitude grows by the same
-    factor, so the decoder's levels and crosstalk model hold unchanged.
+    factor (the decoder measures the levels and the projector's crosstalk from each capture).
 
     >>> spec = stretch_drive(phase_spec((1024, 768)), 0.2)
     >>> [round(v, 3) for v in pattern_range(spec)], round(spec.b_p / phase_spec((1024, 768)).b_p, 3)
