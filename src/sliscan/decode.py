@@ -350,14 +350,8 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
 #: within a few pixels (about 3 on the virtual rig: 10 % ambient, a mid-grey pattern), while a
 #: smooth albedo changes it far less over a quarter stripe.
 ZERO_STRIPE_DROP = 0.5
-#: ... and pixels without a stripe join the zero stripe along the carriers (`_zero_stripe`)
-#: where their DC is at least this fraction of the adjacent stripe 1's (interpolated across
-#: the lines that have none): a floor like `ZERO_STRIPE_MIN_DC`, since a run joins only where
-#: the walk reached a share of it (`ZERO_STRIPE_SPREAD_SHARE`).  0.6 (before) -> 0.4 -> 0.3
-#: found the zero stripe above the 1296x972 smooth sphere (where the sphere hides stripe 1)
-#: on 81 -> 93 % (seed 0), 74 -> 82 % (seed 1), with no more pixels beyond the light.
-ZERO_STRIPE_SPREAD = 0.3
-#: ... in runs the walk reached for at least this share of their pixels.
+#: ... and pixels without a stripe join the zero stripe along the carriers (`_zero_stripe`) in
+#: runs the walk reached for at least this share of their pixels.
 ZERO_STRIPE_SPREAD_SHARE = 0.25
 #: The walk's DC is closed (a running maximum, then minimum) over this share of a quarter
 #: stripe along the line: one-sided windows' DC flips from line to line where the albedo
@@ -372,11 +366,14 @@ ZERO_STRIPE_GAP = 1 / 3
 #: stripe 0 from 0.05-0.10 % of the lit ones to 0.00-0.02 %.
 ZERO_STRIPE_EDGE = 2 / 3
 #: ... and, a floor only, where the DC falls below this fraction of the adjacent stripe 1's
-#: mean (`decode`'s `zero_code_dc`): the drop and edge tests above find the light's edge;
-#: this one only keeps the walk off surfaces far darker than the stripe it starts from.  At
-#: 0.35 (before) it stopped the walk wherever the albedo above stripe 1 was a third of
-#: stripe 1's, which a smooth albedo reaches within a stripe's height: zero stripe found on
-#: the 1296x972 steps 88.2 -> 97.7 %, checkered steps 55 -> 100 % (README, "The all-zero code").
+#: mean (`decode`'s `zero_code_dc`), for the walk and for the runs along the carriers alike:
+#: the drop and edge tests above find the light's edge, and a run joins only where the walk
+#: reached a share of it; the floor only keeps both off surfaces far darker than the stripe they
+#: start from.  At 0.35 for the walk and 0.6 for the runs (before) they stopped wherever the
+#: albedo above stripe 1 was a third of stripe 1's, which a smooth albedo reaches within a
+#: stripe's height, and at a checker's dark squares: zero stripe found on the 1296x972 steps
+#: 88.2 -> 99.9 %, checkered steps 55 -> 100 %, checkered sphere 36 -> 99 % (README, "The
+#: all-zero code").
 ZERO_STRIPE_MIN_DC = 0.15
 
 
@@ -395,10 +392,10 @@ def _zero_stripe(stripe: NDArray[np.integer], dc: NDArray[np.float32], spec: Pat
        `min_dc` times stripe 1's mean DC, at least `ZERO_STRIPE_DROP` times the brightest DC
        of the quarter stripe walked before them, and at least `ZERO_STRIPE_EDGE` times the
        brightest of the few lines before them.  The walk stops at the first pixel that fails.
-    2. Along the carriers, a run of pixels without a stripe whose DC is at least
-       `ZERO_STRIPE_SPREAD` times stripe 1's (the nearest lines' where a line has none) joins
-       the zero stripe if the walk reached at least `ZERO_STRIPE_SPREAD_SHARE` of it: stripe
-       0 goes on behind an object that hides the stripe 1 below it.
+    2. Along the carriers, a run of pixels without a stripe whose DC is at least `min_dc`
+       times stripe 1's (the nearest lines' where a line has none) joins the zero stripe if
+       the walk reached at least `ZERO_STRIPE_SPREAD_SHARE` of it: stripe 0 goes on behind an
+       object that hides the stripe 1 below it.
 
     Measured on the 5 MP virtual rig, thesis pattern, smooth albedo (a walk against stripe 1's
     DC alone at 0.6, before): right stripes on the sphere 88.1 -> 90.2 %, steps 93.3 -> 94.6 %,
@@ -450,7 +447,7 @@ def _zero_stripe(stripe: NDArray[np.integer], dc: NDArray[np.float32], spec: Pat
     walked = passable & (rows > blocked)
     spread = np.interp(np.arange(stripe.shape[1]), columns, reference[columns])
     along_carriers = np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]])  # runs within a line
-    runs, _ = scipy.ndimage.label(candidate & (level >= ZERO_STRIPE_SPREAD * spread), along_carriers)
+    runs, _ = scipy.ndimage.label(candidate & (level >= min_dc * spread), along_carriers)
     walked_share = np.bincount(runs[walked], minlength=runs.max() + 1) / np.maximum(np.bincount(runs.ravel()), 1)
     joined = walked_share >= ZERO_STRIPE_SPREAD_SHARE
     joined[0] = False
