@@ -350,9 +350,6 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
 #: within a few pixels (about 3 on the virtual rig: 10 % ambient, a mid-grey pattern), while a
 #: smooth albedo changes it far less over a quarter stripe.
 ZERO_STRIPE_DROP = 0.5
-#: ... and pixels without a stripe join the zero stripe along the carriers (`_zero_stripe`) in
-#: runs the walk reached for at least this share of their pixels.
-ZERO_STRIPE_SPREAD_SHARE = 0.25
 #: The walk's DC is closed (a running maximum, then minimum) over this share of a quarter
 #: stripe along the line: one-sided windows' DC flips from line to line where the albedo
 #: curves (a window's DC is its own side's), and a dip of a few lines stopped the walk.
@@ -375,6 +372,9 @@ ZERO_STRIPE_EDGE = 2 / 3
 #: 88.2 -> 99.9 %, checkered steps 55 -> 100 %, checkered sphere 36 -> 99 % (README, "The
 #: all-zero code").
 ZERO_STRIPE_MIN_DC = 0.15
+#: ... and pixels without a stripe join the zero stripe along the carriers (`_zero_stripe`) in
+#: runs the walk reached for at least this share of their pixels.
+ZERO_STRIPE_SPREAD_SHARE = 0.25
 
 
 def _zero_stripe(stripe: NDArray[np.integer], dc: NDArray[np.float32], spec: PatternSpec, *,
