@@ -56,18 +56,17 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
     specs = {"thesis 4-bit": patterns.thesis_spec(projector), "sliscan 4-bit": patterns.default_spec(projector),
              "sliscan 4-bit + phase": patterns.phase_spec(projector)}
     if not quick:
+        # the variants below were measured on the phase pattern before its drive was stretched
+        # (twenty-eighth session): each carrier an equal share of [0, 1], spanning 0.25-0.89
+        base = patterns.phase_spec(projector, a_p=0.5, b_p=0.5 / 7)
+        specs["4-bit + phase (equal-share drive)"] = base
         # issue 8's variant that lost: the phase channel on the lowest carriers, the bits above
-        base = patterns.phase_spec(projector)
-        specs.update({name: specs[source] for name, (source, _) in DECODER_VARIANTS.items()})
         specs["4-bit + phase on low carriers"] = base.with_(carriers=tuple(sorted(base.phase_carriers + (base.carriers[0],), reverse=True)),
                                                             phase_carriers=tuple(sorted(base.carriers)[:3]))
         # more of the drive on the phase carriers: each bit weaker (b_p keeps the drive in range)
         for weight in (1.5, 2.0):
             specs[f"4-bit + phase (phase weight {weight:g})"] = base.with_(
                 phase_weight=weight, b_p=0.5 / (base.bits + len(base.phase_carriers) * weight))
-        # the same carriers with the drive stretched over 0.2-1.0 (twenty-seventh session): 1.24x the
-        # modulation; the pixels both keep gain, but more marginal pixels are kept (README)
-        specs["4-bit + phase (drive 0.2-1)"] = patterns.stretch_drive(base, 0.2)
         # a finer fringe (1.5 stripes instead of 2): lower noise in projector lines, but a Gray
         # code off by one stripe deep inside a stripe no longer unwraps to the right period
         specs["4-bit + phase (period 1.5 stripes)"] = base.with_(phase_period=1.5 * base.phase_lines / base.stripes)
@@ -81,6 +80,7 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
             specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
                 projector_size=projector, bits=bits, carriers=carriers, weights=(1.0,) * bits, a_p=0.5, b_p=0.5 / bits)
             specs[f"sliscan {bits}-bit"] = patterns.default_spec(projector, bits=bits)
+        specs.update({name: specs[source] for name, (source, _) in DECODER_VARIANTS.items()})
     return specs
 
 
@@ -111,6 +111,9 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (no short-run test)": ("sliscan 4-bit + phase", dict(fringe_options=dict(short_run=0))),
     "sliscan 4-bit + phase (no mid-run test)": ("sliscan 4-bit + phase",
                                                 dict(fringe_options=dict(mid_run_contrast=float("inf")))),
+    "sliscan 4-bit + phase (no gap ring)": ("sliscan 4-bit + phase", dict(fringe_options=dict(gap_ring=0))),
+    "4-bit + phase (equal-share drive, no gap ring)": ("4-bit + phase (equal-share drive)",
+                                                       dict(fringe_options=dict(gap_ring=0))),
     "sliscan 4-bit + phase (one-period windows only)": ("sliscan 4-bit + phase",
                                                          dict(fringe_options=dict(ramped_windows=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",

@@ -261,19 +261,27 @@ def test_pattern_with_a_phase_channel(tmp_path: Path) -> None:
     result = ok("pattern", "composite", "--projector", "1024x768", "--phase", "-o", "cp.png", cwd=tmp_path)
     assert "3-step phase channel" in result.stdout
     spec = PatternSpec.load(tmp_path / "cp.json")
-    assert spec.phase_carriers == (160.0, 192.0, 224.0) and spec.b_p == pytest.approx(0.5 / 7)
+    # an equal share of the drive per carrier, stretched over 0.2-1 (patterns.PHASE_DRIVE): as phase_spec
+    assert spec.phase_carriers == (160.0, 192.0, 224.0) and spec.b_p == pytest.approx(0.5 / 7 * 1.244, rel=1e-3)
+    assert patterns.pattern_range(spec) == pytest.approx(patterns.PHASE_DRIVE) and spec == patterns.phase_spec(
+        (1024, 768), image="cp.png")
+    ok("pattern", "composite", "--projector", "1024x768", "--phase", "--bp", "0.05", "-o", "low.png", cwd=tmp_path)
+    assert PatternSpec.load(tmp_path / "low.json").b_p == 0.05 and PatternSpec.load(tmp_path / "low.json").a_p == 0.5
     bad = sliscan("pattern", "composite", "--projector", "1024x768", "--phase-carriers", "150,170", "-o", "x.png",
               cwd=tmp_path)
     assert bad.returncode == 2 and "at least 3 phase carriers" in bad.stderr and not (tmp_path / "x.png").exists()
 
 
 def test_pattern_drive_range(tmp_path: Path) -> None:
-    """--drive fits A_p and B_p to the pattern's own extremes (0.25-0.89 for the phase pattern by
-    default): 0.2,1 gives 1.244 times the modulation; the image spans the range to a grey level."""
-    ok("pattern", "composite", "--projector", "1024x768", "--phase", "--drive", "0.2,1", "-o", "cp.png", cwd=tmp_path)
+    """--drive fits A_p and B_p to the pattern's own extremes (0.24-1 for sliscan's stripe
+    pattern, which never projects the all-zero code): 0.2,1 gives 1.05 times its modulation; the
+    image spans the range to a grey level."""
+    ok("pattern", "composite", "--projector", "1024x768", "--drive", "0.2,1", "-o", "cp.png", cwd=tmp_path)
     spec = PatternSpec.load(tmp_path / "cp.json")
     assert patterns.pattern_range(spec) == pytest.approx((0.2, 1.0))
-    assert spec.b_p == pytest.approx(0.5 / 7 * 1.244, rel=1e-3)
+    stripes = patterns.default_spec((1024, 768))
+    low, high = patterns.pattern_range(stripes)
+    assert spec.b_p == pytest.approx(stripes.b_p * 0.8 / (high - low), rel=1e-9)
     image = read_image(tmp_path / "cp.png")
     assert abs(image.min() - 0.2) <= 0.5 / 255 and image.max() == 1.0
     for args, message in ((("--drive", "0.2,1", "--bp", "0.1"), "leave out --ap and --bp"),

@@ -29,7 +29,8 @@ def test_phase_spec_layout_and_json_round_trip(tmp_path):
     assert spec.all_carriers == (128.0, 96.0, 64.0, 32.0, 160.0, 192.0, 224.0)
     assert spec.fringe_period == pytest.approx(2 * 768 / 15)
     low, high = patterns.pattern_range(spec)
-    assert spec.b_p == pytest.approx(0.5 / 7) and 0 <= low < high <= 1  # seven carriers share the drive
+    # seven carriers share the drive equally, stretched over PHASE_DRIVE (0.2-1)
+    assert spec.b_p == pytest.approx(0.5 / 7 * 1.244, rel=1e-3) and (low, high) == pytest.approx(patterns.PHASE_DRIVE)
     spec.save(tmp_path / "p.json")
     assert PatternSpec.load(tmp_path / "p.json") == spec
     assert "phase_carriers" in json.loads((tmp_path / "p.json").read_text())
@@ -179,7 +180,7 @@ def test_window_contrast_is_the_pixels_dc_over_its_windows_mean():
 
 
 #: The `refine` steps after the edge margin, switched off where a test isolates an earlier one.
-LATER_OFF = dict(near_jump_contrast=np.inf, short_run=0, mid_run_contrast=np.inf, shadow_sides=False)
+LATER_OFF = dict(near_jump_contrast=np.inf, short_run=0, mid_run_contrast=np.inf, shadow_sides=False, gap_ring=0)
 
 
 def dropped_exactly(kept, every, expected):
@@ -265,6 +266,17 @@ def test_refine_drops_the_short_runs_beside_a_jump(steps_scan):
     assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])  # measured 14.2 against 1.4 lines
 
 
+def test_refine_drops_the_ring_of_pixels_beside_its_gaps(steps_scan):
+    capture, spec, demod, carriers, gray = steps_scan
+    kept, every = (fringe.refine(gray, demod, carriers, spec, gap_ring=ring) for ring in (fringe.GAP_RING, 0))
+    dropped = dropped_exactly(kept, every, fringe.beside_gaps(every.valid, fringe.GAP_RING))
+    error = np.abs(every.proj_map - capture.truth.proj[..., 1])
+    # measured 5.2 % of the pixels (at 640x480 the gaps' perimeter is large against the area)
+    assert 0 < dropped.sum() < 0.08 * every.valid.sum()
+    # measured 4.9 against 0.86 lines mean, 22.4 against 3.9 lines RMS
+    assert np.mean(error[dropped]) > 4 * np.mean(error[kept.valid])
+
+
 def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
     # a lit surface (DC 1) whose shadow (DC 0.1) begins at row 20.5, blurred by a Gaussian of
     # sigma 1.5 rows: the light is halfway at row 20.5, so rows 21 and on lie in the shadow
@@ -294,7 +306,7 @@ def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
 
 def test_refine_drops_the_pixels_on_the_shadow_side_of_a_light_edge(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, shadow_sides=side, image=capture.image)
+    kept, every = (fringe.refine(gray, demod, carriers, spec, shadow_sides=side, gap_ring=0, image=capture.image)
                    for side in (True, False))
     down = fringe.shadow_side(every.proj_map, demod.dc, jump=spec.fringe_period / 2)
     along = fringe.shadow_side(every.proj_map, capture.image, jump=spec.fringe_period / 2, axis=1,
@@ -526,9 +538,10 @@ def test_a_clean_sphere_scans_to_sub_stripe_lines(rig):
     # is exact but for the windows' blending of a curved surface: measured 0.26 lines
     assert np.median(stripes) == pytest.approx(stripe / 4, rel=0.1)
     assert np.median(phase) < 0.5
-    # measured 94.9 %: the shadow-side test along the carriers drops 0.2 % of the pixels along
-    # the limb, whose windows end at them (median error 7.3 lines against 0.7 for the kept ones)
-    assert complete > 0.94
+    # measured 91.5 %: the shadow-side test along the carriers drops 0.2 % of the pixels along
+    # the limb, whose windows end at them (median error 7.3 lines against 0.7 for the kept ones),
+    # the ring beside the gaps (`GAP_RING`) 3.4 % at this size (94.9 % without it)
+    assert complete > 0.9
     assert np.mean(phase > stripe) < 0.002  # no wrong periods
 
 

@@ -92,7 +92,7 @@ def test_render_is_quantised_and_gamma_precorrected():
 def test_pattern_out_of_range_raises():
     with pytest.raises(InputError, match="pattern leaves"):
         patterns.linear_pattern(PatternSpec(b_p=0.2))
-    spec = patterns.phase_spec((1024, 768))  # its own range, 0.25-0.89, moved up by 0.11
+    spec = patterns.phase_spec((1024, 768), a_p=0.5, b_p=0.5 / 7)  # its own range, 0.25-0.89, moved up by 0.11
     message = r"pattern leaves \[0, 1\]: a_p 0.61 and b_p 0.0714286 make it span \[0.360, 1.003\]"
     with pytest.raises(InputError, match=message):
         patterns.linear_pattern(spec.with_(a_p=spec.a_p + 0.11))

@@ -371,7 +371,8 @@ _pattern_options = _options(
     click.option("--phase", is_flag=True,
                  help="Add a 3-step phase channel (sub-stripe depth from the same frame): the fringe's "
                       "phase-shifted copies on the next three carriers above the bits' (160, 192, 224 per "
-                      "1024 px for the default bits)."),
+                      "1024 px for the default bits); the composite pattern then spans a drive of 0.2-1 "
+                      "unless --ap, --bp or --drive say otherwise."),
     click.option("--phase-carriers", type=FLOATS,
                  help="The phase channel's carriers (at least 3), cycles per projector width; implies --phase."),
     click.option("--phase-period", type=POSITIVE,
@@ -446,6 +447,8 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
         measured = photometry.Characterization.load(characterization)
         with _about(characterization):  # compensated weights keep their sum, so B_p still fits
             spec = measured.apply(spec)
+    if drive is None and kind == "composite" and spec.phase_carriers and a_p is None and b_p is None:
+        drive = patterns.PHASE_DRIVE  # as `patterns.phase_spec`
     return spec if drive is None else patterns.stretch_drive(spec, *drive)
 
 
