@@ -926,7 +926,7 @@ EXTEND_SNR = 4.0
 #: "Sub-stripe depth from one frame"), the pixels next to a gap are 1.1 % of the points and
 #: carry 23 % of the squared error (RMS 14 mm against 1.9 mm for those 40 px or more inside).
 #: One ring lowered the RMS error by 2-36 % on 23 captures (three rigs, six seeds) for 0.1-1.7
-#: points of completeness at 5 MP, 1.3-1.4 at 1920x1440 and 0.5-3.5 at 1296x972 (with the
+#: points of completeness at 5 MP, 1.2-1.4 at 1920x1440 and 0.5-3.5 at 1296x972 (with the
 #: stretched drive of `patterns.PHASE_DRIVE`, which gives most of that back: RMS 1-38 % lower
 #: than neither, -1.4 to +1.0 points); tests that looked for the bad ones among those pixels
 #: (a plane fitted to the pixels farther in, the line's slope, only the gaps the phase channel
