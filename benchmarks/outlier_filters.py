@@ -1,13 +1,21 @@
-"""What the narrow-run filter (`outliers.remove_narrow_runs`) buys: gross outliers and
-completeness of single-shot scans with and without it, on captures rendered for the purpose.
+"""What the 3D filters buy: scans with and without one, on captures rendered for the purpose.
 
-For sliscan's default pattern and the thesis's, on the sphere and the steps, under the accuracy
-benchmark's realistic conditions (smooth or checker albedo), for each seed: the same capture
-scanned by `Scanner(remove_narrow_runs=False)` and by the default `Scanner`; gross outliers
-(`evaluate.gross_outliers`: more than three stripes off) and completeness against the truth.
+``--filter narrow-runs`` (`outliers.remove_narrow_runs`): sliscan's default pattern and the
+thesis's, single shot; gross outliers (`evaluate.gross_outliers`: more than three stripes off)
+and completeness against the truth.
+
+``--filter jump-edges`` (`outliers.remove_jump_edges`): the multi-shot references of
+`accuracy.py --compare` (`methods.method_specs`); completeness, outliers (points farther than
+one stripe of the thesis's 4-bit pattern, as in that table), RMS, median and 95th percentile
+error, and the sphere's fitted radius.
+
+Each on the sphere and the steps, under the accuracy benchmark's realistic conditions (smooth
+or checker albedo) or its clean ones (``--albedo clean``), for each seed: the same capture
+scanned by `Scanner` with the filter off, then by the default `Scanner`.
 
     python benchmarks/outlier_filters.py --camera 1296x972 --seeds 1,2 --scenes sphere,steps --albedo smooth,checker
     python benchmarks/outlier_filters.py --camera 2592x1944 --seeds 7 --scenes sphere --albedo smooth
+    python benchmarks/outlier_filters.py --filter jump-edges --seeds 1,2 --albedo smooth,checker,clean
 """
 
 from __future__ import annotations
@@ -17,37 +25,66 @@ import sys
 from pathlib import Path
 
 from sliscan import patterns, simulate
-from sliscan.evaluate import accuracy
+from sliscan.evaluate import accuracy, sphere_fit, stripe_depth, surface_accuracy
 from sliscan.pipeline import Scanner
+from sliscan.types import MULTI_FRAME_KINDS, PatternSpec, ScanResult
 
 sys.path.insert(0, str(Path(__file__).parent))
-from accuracy import SCENES, conditions  # noqa: E402
+from accuracy import SCENES, clean_conditions, conditions  # noqa: E402
+from methods import method_specs, render_captures  # noqa: E402
+
+PROJECTOR = (1024, 768)
+
+
+def single_shot_figures(result: ScanResult, truth: simulate.GroundTruth, spec: PatternSpec, rig: simulate.Rig,
+                        scene: str) -> str:
+    """Gross outliers and completeness (%) of a composite pattern's scan."""
+    acc = accuracy(result, truth, spec, rig.calibration)
+    return f"{100 * acc.gross_outliers:8.4f} {100 * acc.completeness:7.2f}"
+
+
+def surface_figures(result: ScanResult, truth: simulate.GroundTruth, spec: PatternSpec, rig: simulate.Rig,
+                    scene: str) -> str:
+    """Completeness, outliers (%), RMS, median, p95 error and fitted sphere radius (mm; sphere
+    scene) of any scan."""
+    acc = surface_accuracy(result, truth, stripe_depth(truth, patterns.thesis_spec(PROJECTOR), rig.calibration))
+    radius = sphere_fit(result, truth, (0.0, 0.0, 800.0), 122.555)[0] if scene == "sphere" else float("nan")
+    return (f"{100 * acc.completeness:7.2f} {100 * acc.outliers:6.3f} {acc.rms_mm:6.2f} {acc.median_mm:6.3f} "
+            f"{acc.p95_mm:6.2f} {radius:7.2f}")
+
+
+FILTERS = {
+    "narrow-runs": ("remove_narrow_runs", "gross %  compl %", single_shot_figures),
+    "jump-edges": ("remove_jump_edges", "compl % outl %    RMS    med    p95  radius", surface_figures),
+}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--filter", choices=sorted(FILTERS), default="narrow-runs")
     parser.add_argument("--camera", default="1296x972")
     parser.add_argument("--seeds", default="1,2", help="comma-separated seeds (pick ones no tuning used)")
     parser.add_argument("--scenes", default="sphere,steps")
-    parser.add_argument("--albedo", default="smooth,checker")
+    parser.add_argument("--albedo", default="smooth,checker", help="smooth, checker (realistic) or clean")
     args = parser.parse_args()
     camera = tuple(int(v) for v in args.camera.split("x"))
-    rig = simulate.virtual_rig(camera_size=camera, projector_size=(1024, 768))
-    specs = {"sliscan 4-bit": patterns.default_spec((1024, 768)), "thesis 4-bit": patterns.thesis_spec((1024, 768))}
-    print(f"{'pattern':14s} {'scene':7s} {'albedo':8s} {'seed':>4s} | {'without: gross %':>16s} {'complete %':>10s} "
-          f"| {'with: gross %':>13s} {'complete %':>10s}")
+    rig = simulate.virtual_rig(camera_size=camera, projector_size=PROJECTOR)
+    option, header, figures_of = FILTERS[args.filter]
+    if args.filter == "narrow-runs":
+        specs = {"sliscan 4-bit": patterns.default_spec(PROJECTOR), "thesis 4-bit": patterns.thesis_spec(PROJECTOR)}
+    else:
+        specs = {name: spec for name, spec in method_specs(PROJECTOR).items() if spec.kind in MULTI_FRAME_KINDS}
+    print(f"{'pattern':31s} {'scene':7s} {'albedo':8s} {'seed':>4s} | without: {header} | with: {header}")
     for name, spec in specs.items():
         for scene_name in args.scenes.split(","):
             scene = SCENES[scene_name]()
             for albedo in args.albedo.split(","):
                 for seed in (int(v) for v in args.seeds.split(",")):
-                    capture = simulate.render(rig, scene, patterns.render_pattern(spec), conditions(albedo, seed))
-                    figures = []
-                    for narrow in (False, True):
-                        result = Scanner(spec, rig.calibration, remove_narrow_runs=narrow).scan(capture.image)
-                        acc = accuracy(result, capture.truth, spec, rig.calibration)
-                        figures.append(f"{100 * acc.gross_outliers:16.4f} {100 * acc.completeness:10.2f}")
-                    print(f"{name:14s} {scene_name:7s} {albedo:8s} {seed:4d} | {figures[0]} | {figures[1]}", flush=True)
+                    made = clean_conditions(seed) if albedo == "clean" else conditions(albedo, seed)
+                    (frames,), truth = render_captures(rig, scene, [spec], made)
+                    figures = [figures_of(Scanner(spec, rig.calibration, **{option: on}).scan(frames), truth, spec, rig,
+                                          scene_name) for on in (False, True)]
+                    print(f"{name:31s} {scene_name:7s} {albedo:8s} {seed:4d} | {figures[0]} | {figures[1]}", flush=True)
 
 
 if __name__ == "__main__":

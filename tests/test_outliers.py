@@ -1,11 +1,12 @@
-"""Speckle removal on the projector map: wrong-code patches go, real surfaces and edges stay."""
+"""The 3D filters on the projector map: wrong-code patches and the mixed pixels along depth edges go,
+real surfaces stay."""
 
 import cv2
 import numpy as np
 import pytest
 
 from sliscan._validate import InputError
-from sliscan.outliers import default_min_region, remove_narrow_runs, remove_speckles
+from sliscan.outliers import default_min_region, remove_jump_edges, remove_narrow_runs, remove_speckles
 
 
 def _two_surfaces(rng):
@@ -122,3 +123,45 @@ def test_narrow_runs_along_columns_are_the_transpose(rng):
 def test_narrow_runs_bad_parameters_are_refused(kwargs):
     with pytest.raises(InputError):
         remove_narrow_runs(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)
+
+
+# ------------------------------------------------------------------------------------ jump edges
+
+
+def test_jump_edges_drop_both_sides_of_a_step_and_nothing_else(rng):
+    proj = _two_surfaces(rng)   # neighbours of one surface differ by at most about 1.5 rows
+    keep = remove_jump_edges(proj, np.ones(proj.shape, bool), max_jump=4)
+    expected = np.ones(proj.shape, bool)
+    expected[:, 149:151] = False
+    np.testing.assert_array_equal(keep, expected)
+
+
+@pytest.mark.parametrize("gap, reach, dropped", [(5, 16, [144, 150]), (5, 5, []), (15, 16, [134, 150])])
+def test_jump_edges_look_across_a_gap_as_far_as_reach(rng, gap, reach, dropped):
+    """The first pixel on each side of an undecoded gap goes when the other side is within
+    `reach` (Chebyshev distance: gap + 1) and more than max_jump per pixel away; a surface's
+    own steep slope (a ramp of 3 rows per pixel across the gap) is never cut."""
+    proj = _two_surfaces(rng)
+    valid = np.ones(proj.shape, bool)
+    valid[:, 150 - gap:150] = False
+    keep = remove_jump_edges(proj, valid, max_jump=4, reach=reach)
+    assert (valid & ~keep).any(axis=0).nonzero()[0].tolist() == dropped
+    assert (valid & ~keep)[:, dropped].all()
+    ramp = np.tile(3.0 * np.arange(300, dtype=np.float32), (200, 1))
+    assert (remove_jump_edges(ramp, valid, max_jump=4, reach=reach) == valid).all()
+
+
+def test_jump_edges_ignore_invalid_and_nan_neighbours():
+    proj = np.full((20, 20), 100.0)
+    proj[:, 10:] = 300.0
+    valid = np.ones(proj.shape, bool)
+    valid[:, 10:] = False                          # the other surface undecoded: no jump, no gap across
+    assert (remove_jump_edges(proj, valid, max_jump=4) == valid).all()
+    proj[:, 10:] = np.nan
+    assert (remove_jump_edges(proj, np.ones(proj.shape, bool), max_jump=4)[:, :10]).all()
+
+
+@pytest.mark.parametrize("kwargs", [dict(max_jump=0), dict(max_jump=4, reach=0)])
+def test_jump_edges_bad_parameters_are_refused(kwargs):
+    with pytest.raises(InputError):
+        remove_jump_edges(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)
