@@ -4,18 +4,19 @@
 thesis's, single shot; gross outliers (`evaluate.gross_outliers`: more than three stripes off)
 and completeness against the truth.
 
-``--filter jump-edges`` (`outliers.remove_jump_edges`): the multi-shot references of
-`accuracy.py --compare` (`methods.method_specs`); completeness, outliers (points farther than
-one stripe of the thesis's 4-bit pattern, as in that table), RMS, median and 95th percentile
-error, and the sphere's fitted radius.
+``--filter depth-edges`` (`outliers.remove_jump_edges`, then `outliers.remove_shadow_sides`):
+the multi-shot references of `accuracy.py --compare` (`methods.method_specs`); completeness,
+outliers (points farther than one stripe of the thesis's 4-bit pattern, as in that table), RMS,
+median and 95th percentile error, and the sphere's fitted radius; with neither filter, with
+the jump edges alone, and with both (the default).
 
 Each on the sphere and the steps, under the accuracy benchmark's realistic conditions (smooth
 or checker albedo) or its clean ones (``--albedo clean``), for each seed: the same capture
-scanned by `Scanner` with the filter off, then by the default `Scanner`.
+scanned by `Scanner` with the filter(s) off, then by the default `Scanner`.
 
     python benchmarks/outlier_filters.py --camera 1296x972 --seeds 1,2 --scenes sphere,steps --albedo smooth,checker
     python benchmarks/outlier_filters.py --camera 2592x1944 --seeds 7 --scenes sphere --albedo smooth
-    python benchmarks/outlier_filters.py --filter jump-edges --seeds 1,2 --albedo smooth,checker,clean
+    python benchmarks/outlier_filters.py --filter depth-edges --seeds 1,2 --albedo smooth,checker,clean
 """
 
 from __future__ import annotations
@@ -53,9 +54,13 @@ def surface_figures(result: ScanResult, truth: simulate.GroundTruth, spec: Patte
             f"{acc.p95_mm:6.2f} {radius:7.2f}")
 
 
+#: Per filter: the `Scanner` options of each column (the last one the default), their labels,
+#: the figures' header and the function that gives them.
 FILTERS = {
-    "narrow-runs": ("remove_narrow_runs", "gross %  compl %", single_shot_figures),
-    "jump-edges": ("remove_jump_edges", "compl % outl %    RMS    med    p95  radius", surface_figures),
+    "narrow-runs": ([dict(remove_narrow_runs=False), {}], ["without", "with"], "gross %  compl %",
+                    single_shot_figures),
+    "depth-edges": ([dict(remove_jump_edges=False, remove_shadow_sides=False), dict(remove_shadow_sides=False), {}],
+                    ["neither", "jump edges", "both"], "compl % outl %    RMS    med    p95  radius", surface_figures),
 }
 
 
@@ -69,12 +74,13 @@ def main() -> None:
     args = parser.parse_args()
     camera = tuple(int(v) for v in args.camera.split("x"))
     rig = simulate.virtual_rig(camera_size=camera, projector_size=PROJECTOR)
-    option, header, figures_of = FILTERS[args.filter]
+    options, labels, header, figures_of = FILTERS[args.filter]
     if args.filter == "narrow-runs":
         specs = {"sliscan 4-bit": patterns.default_spec(PROJECTOR), "thesis 4-bit": patterns.thesis_spec(PROJECTOR)}
     else:
         specs = {name: spec for name, spec in method_specs(PROJECTOR).items() if spec.kind in MULTI_FRAME_KINDS}
-    print(f"{'pattern':31s} {'scene':7s} {'albedo':8s} {'seed':>4s} | without: {header} | with: {header}")
+    print(f"{'pattern':31s} {'scene':7s} {'albedo':8s} {'seed':>4s} | " + " | ".join(f"{label}: {header}"
+                                                                                 for label in labels))
     for name, spec in specs.items():
         for scene_name in args.scenes.split(","):
             scene = SCENES[scene_name]()
@@ -82,9 +88,9 @@ def main() -> None:
                 for seed in (int(v) for v in args.seeds.split(",")):
                     made = clean_conditions(seed) if albedo == "clean" else conditions(albedo, seed)
                     (frames,), truth = render_captures(rig, scene, [spec], made)
-                    figures = [figures_of(Scanner(spec, rig.calibration, **{option: on}).scan(frames), truth, spec, rig,
-                                          scene_name) for on in (False, True)]
-                    print(f"{name:31s} {scene_name:7s} {albedo:8s} {seed:4d} | {figures[0]} | {figures[1]}", flush=True)
+                    figures = [figures_of(Scanner(spec, rig.calibration, **option).scan(frames), truth, spec, rig,
+                                          scene_name) for option in options]
+                    print(f"{name:31s} {scene_name:7s} {albedo:8s} {seed:4d} | " + " | ".join(figures), flush=True)
 
 
 if __name__ == "__main__":

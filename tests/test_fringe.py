@@ -5,11 +5,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from scipy.special import erf
 
 from sliscan import InputError, PatternSpec, Scanner, fringe, patterns, simulate
 from sliscan.decode import decode
 from sliscan.evaluate import true_stripes
+from sliscan.outliers import shadow_side
 from sliscan.patterns import fringe_line, fringe_phase, phase_planes, phase_shifts
 
 
@@ -277,40 +277,13 @@ def test_refine_drops_the_ring_of_pixels_beside_its_gaps(steps_scan):
     assert np.mean(error[dropped]) > 4 * np.mean(error[kept.valid])
 
 
-def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
-    # a lit surface (DC 1) whose shadow (DC 0.1) begins at row 20.5, blurred by a Gaussian of
-    # sigma 1.5 rows: the light is halfway at row 20.5, so rows 21 and on lie in the shadow
-    rows = np.arange(40)
-    dc = (0.1 + 0.9 * 0.5 * (1 - erf((rows - 20.5) / (1.5 * np.sqrt(2))))).astype(np.float32)[:, None]
-    line = np.full((40, 1), 300.0, np.float32)
-    for last in (21, 22, 23):  # the decoder kept rows up to `last`: the shadow-side ones go, at most 3
-        line[:] = 300.0
-        line[last + 1:] = np.nan
-        dark = fringe.shadow_side(line, dc, jump=50.0)[:, 0]
-        assert np.nonzero(dark)[0].tolist() == list(range(21, last + 1))
-    line[:] = 300.0
-    line[25:] = np.nan  # four rows into the shadow: the walk stops after SHADOW_SIDE_STEPS
-    assert np.nonzero(fringe.shadow_side(line, dc, jump=50.0)[:, 0])[0].tolist() == [22, 23, 24]
-    # rows up to 20 (the lit side of the halfway point) stay, at a gap or at a jump
-    line[:] = 300.0
-    line[21:] = np.nan
-    assert not fringe.shadow_side(line, dc, jump=50.0).any()
-    line[21:] = 420.0  # another surface beyond a jump, kept too: only row 20's side is tested
-    assert np.nonzero(fringe.shadow_side(line, dc, jump=50.0)[:, 0])[0].tolist() == []
-    # not at a run end (a dark dip inside a run), or the outside brighter (a shadow ending): kept
-    line[:] = 300.0
-    assert not fringe.shadow_side(line, dc, jump=50.0).any()
-    line[:21] = np.nan
-    assert not fringe.shadow_side(line, dc, jump=50.0).any()
-
-
 def test_refine_drops_the_pixels_on_the_shadow_side_of_a_light_edge(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
     kept, every = (fringe.refine(gray, demod, carriers, spec, shadow_sides=side, gap_ring=0, image=capture.image)
                    for side in (True, False))
-    down = fringe.shadow_side(every.proj_map, demod.dc, jump=spec.fringe_period / 2)
-    along = fringe.shadow_side(every.proj_map, capture.image, jump=spec.fringe_period / 2, axis=1,
-                               reach=fringe.SHADOW_SIDE_REACH_CARRIERS)
+    down = shadow_side(every.proj_map, demod.dc, jump=spec.fringe_period / 2)
+    along = shadow_side(every.proj_map, capture.image, jump=spec.fringe_period / 2, axis=1,
+                        reach=fringe.SHADOW_SIDE_REACH_CARRIERS)
     dropped = dropped_exactly(kept, every, down | along)
     assert along[dropped].sum() > 0.1 * dropped.sum()  # measured 20 % along the carriers
     assert 0 < dropped.sum() < 0.02 * every.valid.sum()  # measured 0.95 %

@@ -4,9 +4,10 @@ real surfaces stay."""
 import cv2
 import numpy as np
 import pytest
+from scipy.special import erf
 
 from sliscan._validate import InputError
-from sliscan.outliers import default_min_region, remove_jump_edges, remove_narrow_runs, remove_speckles
+from sliscan.outliers import default_min_region, remove_jump_edges, remove_narrow_runs, remove_speckles, shadow_side
 
 
 def _two_surfaces(rng):
@@ -165,3 +166,33 @@ def test_jump_edges_ignore_invalid_and_nan_neighbours():
 def test_jump_edges_bad_parameters_are_refused(kwargs):
     with pytest.raises(InputError):
         remove_jump_edges(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)
+
+
+# ------------------------------------------------------------------------------------ shadow sides
+
+
+def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
+    # a lit surface (DC 1) whose shadow (DC 0.1) begins at row 20.5, blurred by a Gaussian of
+    # sigma 1.5 rows: the light is halfway at row 20.5, so rows 21 and on lie in the shadow
+    rows = np.arange(40)
+    dc = (0.1 + 0.9 * 0.5 * (1 - erf((rows - 20.5) / (1.5 * np.sqrt(2))))).astype(np.float32)[:, None]
+    line = np.full((40, 1), 300.0, np.float32)
+    for last in (21, 22, 23):  # the decoder kept rows up to `last`: the shadow-side ones go, at most 3
+        line[:] = 300.0
+        line[last + 1:] = np.nan
+        dark = shadow_side(line, dc, jump=50.0)[:, 0]
+        assert np.nonzero(dark)[0].tolist() == list(range(21, last + 1))
+    line[:] = 300.0
+    line[25:] = np.nan  # four rows into the shadow: the walk stops after SHADOW_SIDE_STEPS
+    assert np.nonzero(shadow_side(line, dc, jump=50.0)[:, 0])[0].tolist() == [22, 23, 24]
+    # rows up to 20 (the lit side of the halfway point) stay, at a gap or at a jump
+    line[:] = 300.0
+    line[21:] = np.nan
+    assert not shadow_side(line, dc, jump=50.0).any()
+    line[21:] = 420.0  # another surface beyond a jump, kept too: only row 20's side is tested
+    assert np.nonzero(shadow_side(line, dc, jump=50.0)[:, 0])[0].tolist() == []
+    # not at a run end (a dark dip inside a run), or the outside brighter (a shadow ending): kept
+    line[:] = 300.0
+    assert not shadow_side(line, dc, jump=50.0).any()
+    line[:21] = np.nan
+    assert not shadow_side(line, dc, jump=50.0).any()

@@ -58,7 +58,7 @@ Stages, each its own function:
    contrast is above 1.5 (`MID_RUN`).
 9. Then the pixels at the ends of runs (down the phase direction, and along the carriers on the
    capture itself) whose light puts their centre on the shadow's side of a light edge
-   (`shadow_side`): blur, or a window ending at them, lends them the lit side's code.
+   (`sliscan.outliers.shadow_side`): blur, or a window ending at them, lends them the lit side's code.
 10. Last, the ring of pixels next to any pixel not kept (`beside_gaps`, `GAP_RING`): whatever
     made that one fail reaches them a little less, and the error grows toward every gap.
 
@@ -76,6 +76,7 @@ from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
+from sliscan.outliers import shadow_side
 from sliscan.demodulate import RAMPED_PERIODS, Carriers, Demodulated, along_carriers
 from sliscan.patterns import code_bits, fringe_line, fringe_phase, phase_shifts, stripe_codes, stripe_of_line
 from sliscan.types import PatternSpec
@@ -896,17 +897,7 @@ SHORT_RUN = 0.125
 MID_RUN = 0.5
 MID_RUN_CONTRAST = 1.5
 
-#: `shadow_side` defaults: a pixel at the end of a run of kept pixels down the phase direction
-#: (the next one undecoded, or a jump) is dropped while its DC is below the midpoint of the DC
-#: `SHADOW_SIDE_REACH` pixels inward and `SHADOW_SIDE_REACH` pixels outward and the outward one
-#: is under `SHADOW_SIDE_DARKER` of the inward one; then the next pixel inward is tested, up to
-#: `SHADOW_SIDE_STEPS` pixels.  Blur is symmetric, so a pixel darker than halfway between the
-#: lit surface and its shadow has its centre in the shadow, which the lit side's blurred light
-#: (and with it the lit side's fringe and code) reaches.
-SHADOW_SIDE_REACH = 2
-SHADOW_SIDE_DARKER = 0.6
-SHADOW_SIDE_STEPS = 3
-#: The same test along the carriers, on the capture's own pixels (`refine`'s `image`): their
+#: `outliers.shadow_side` along the carriers, on the capture's own pixels (`refine`'s `image`): their
 #: light carries the carriers' ripple, so it compares pixels a little farther apart.
 SHADOW_SIDE_REACH_CARRIERS = 3
 
@@ -1019,7 +1010,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         benchmark's record).  Needs the window demodulator's offsets.
     shadow_sides : bool
         Last, drop the pixels at the ends of runs down the phase direction whose DC puts their
-        centre on the shadow's side of the edge (`shadow_side`), and with `image` those at the
+        centre on the shadow's side of the edge (`sliscan.outliers.shadow_side`), and with `image` those at the
         ends of runs along the carriers whose own light does; if false, keep them (for the
         benchmark's record).
     ramped_windows : bool
@@ -1172,83 +1163,6 @@ def beside_gaps(kept: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
     inner = cv2.erode(mask, np.ones((3, 3), np.uint8), iterations=rings, borderType=cv2.BORDER_CONSTANT,
                       borderValue=1)
     return kept & (inner == 0)
-
-
-@numba.njit(cache=True, nogil=True)
-def _shadow_side_rows(line: NDArray[np.float32], dc: NDArray[np.float32], axis: int, jump: float, reach: int,
-                      darker: float, steps: int, rows: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
-    """`shadow_side` for the run ends on the given `rows`; marks `out` (pixels up to `steps`
-    inward of them, so on other rows too when `axis` is 0: a mark is only ever set)."""
-    height, width = line.shape
-    dr, dx = (1, 0) if axis == 0 else (0, 1)
-    for r in rows:
-        for x in range(width):
-            here = line[r, x]
-            if not np.isfinite(here):
-                continue
-            for step in (1, -1):  # the end facing the pixel `step` along the axis
-                br, bx = r + dr * step, x + dx * step
-                if (0 <= br < height and 0 <= bx < width and np.isfinite(line[br, bx])
-                        and abs(line[br, bx] - here) <= jump):
-                    continue  # not a run end on this side
-                pr, px = r, x
-                for _ in range(steps):
-                    ir, ix = pr - dr * step * reach, px - dx * step * reach
-                    orow, ox = pr + dr * step * reach, px + dx * step * reach
-                    if not (0 <= ir < height and 0 <= ix < width and 0 <= orow < height and 0 <= ox < width):
-                        break
-                    if not np.isfinite(line[pr, px]):
-                        break
-                    if (pr != r or px != x) and abs(line[pr, px] - line[pr + dr * step, px + dx * step]) > jump:
-                        break  # walked off the run
-                    lit, shadow = dc[ir, ix], dc[orow, ox]
-                    if not (shadow < darker * lit and dc[pr, px] < 0.5 * (lit + shadow)):
-                        break
-                    out[pr, px] = True
-                    pr, px = pr - dr * step, px - dx * step
-
-
-def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: float, axis: int = 0,
-                reach: int = SHADOW_SIDE_REACH, darker: float = SHADOW_SIDE_DARKER,
-                steps: int = SHADOW_SIDE_STEPS) -> NDArray[np.bool_]:
-    """The kept pixels at the ends of runs along `axis` that lie on the shadow's side of a light
-    edge, ``(H, W)`` bool.
-
-    A run ends where the next pixel along the axis is undecoded or more than `jump` lines
-    off.  Its last pixel is taken when the DC `reach` pixels outward is under `darker` times
-    the DC `reach` pixels inward, and its own DC is below their midpoint; then the pixel
-    before it, up to `steps` pixels.  Such a pixel's centre sees the shadow (blur is
-    symmetric: the edge is where the light is halfway), but blur, or a demodulation window
-    that ends at it, brings it enough of the lit side's light to decode that side's code and
-    fringe: triangulated on its own ray, that is a point off both surfaces.  On the virtual
-    rig's steps the boxes' shadows on the wall below them made such rows one to three pixels
-    deep along every horizontal edge (5 MP smooth steps: RMS error 5.9 -> 4.2 mm, completeness
-    unchanged to 0.1 points; README).
-
-    Parameters
-    ----------
-    line : (H, W) float32 array
-        Projector lines, NaN where not kept; the phase direction along axis 0.
-    dc : (H, W) float32 array
-        Each pixel's light: down the phase direction (`axis` 0) `Demodulated.dc`, whose window
-        lies along the carriers; along the carriers (`axis` 1) the capture itself, since there
-        `Demodulated.dc` is the mean of a window that may lie on the other side of the edge.
-    jump : float
-        Lines between neighbours that end a run.
-    axis : {0, 1}
-        Along which axis the runs are followed.
-
-    >>> line = np.full((12, 1), 50.0, np.float32); line[8:] = np.nan      # kept rows 0-7
-    >>> dc = np.array([1, 1, 1, 1, 1, 0.9, 0.6, 0.4, 0.15, 0.1, 0.1, 0.1], np.float32)[:, None]
-    >>> np.nonzero(shadow_side(line, dc, jump=25.0)[:, 0])[0].tolist()    # 0.4 < (0.9 + 0.1) / 2
-    [7]
-    >>> shadow_side(line.T.copy(), dc.T.copy(), jump=25.0, axis=1).nonzero()[1].tolist()
-    [7]
-    """
-    out = np.zeros(line.shape, bool)
-    dc = np.asarray(dc, dtype=np.float32)
-    over_rows(lambda rows: _shadow_side_rows(line, dc, axis, jump, reach, darker, steps, rows, out), line.shape[0])
-    return out
 
 
 @numba.njit(cache=True, nogil=True)

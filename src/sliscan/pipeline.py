@@ -23,7 +23,8 @@ from sliscan.baseband import Baseband, BasebandPlan, demodulate_baseband, normal
 from sliscan.decode import Decoded, decode
 from sliscan.demodulate import (ALBEDO_ESTIMATES, Carriers, Demodulated, along_carriers, check_exposure, demodulate,
                                 detect_carriers)
-from sliscan.outliers import default_max_jump, remove_jump_edges, remove_narrow_runs, remove_speckles
+from sliscan.outliers import (default_max_jump, remove_jump_edges, remove_narrow_runs, remove_shadow_sides,
+                               remove_speckles)
 from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
 from sliscan.sequences import decode_frames
@@ -239,6 +240,11 @@ class Scanner:
         own (the narrow runs; with a phase channel, `sliscan.fringe.refine`'s ring beside its
         gaps), after which this one changed the phase pattern's scans not at all and cost the
         stripe patterns' right stripes 0.01-0.04 points for 0.1-0.3 % of RMS.
+    remove_shadow_sides : bool
+        Multi-frame kinds: drop the pixels at the ends of runs (along both image axes) whose
+        light puts their centre on the shadow's side of a light edge (`sliscan.outliers.
+        remove_shadow_sides`; the phase channel has its own in `sliscan.fringe.refine`).  On by
+        default.
     albedo : str or None
         Methods ``window`` and ``baseband``: the albedo estimate the capture is divided by
         before demodulation (`sliscan.demodulate.normalise_albedo`; ``"steps"``, the default,
@@ -268,6 +274,7 @@ class Scanner:
     remove_speckles: bool = True
     remove_narrow_runs: bool = True
     remove_jump_edges: bool = True
+    remove_shadow_sides: bool = True
     albedo: str | None = "steps"
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
@@ -424,22 +431,23 @@ class Scanner:
 
     def _measured(self, proj_map: NDArray[np.floating], valid: NDArray[np.bool_], direction: str,
                   window: int | None = None, other: NDArray[np.floating] | None = None,
-                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+                  light: NDArray[np.floating] | None = None) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """World points ``(H, W, 3)`` float32 of `proj_map` (the projector coordinate along
         `direction`, "rows" or "columns"; `other`: the other one, if decoded) and the mask of
         the ones kept, NaN but there: `valid` less the points that are not measurements
         (`measurable`: outside the projector's light, seen at under `min_angle_deg`) or wrong
         codes: with `remove_narrow_runs`, runs narrower than the demodulation `window` (camera
         pixels; composite kinds) across a depth edge; with `remove_speckles`, small regions
-        that jump away from their neighbours; with `remove_jump_edges` (multi-frame kinds), the
-        pixels beside a jump.  The points the filters drop are set to NaN by
+        that jump away from their neighbours; for multi-frame kinds, with `remove_jump_edges` the
+        pixels beside a jump or a gap to another surface, with `remove_shadow_sides` and `light`
+        (each pixel's light) those on a shadow's side of a light edge.  The points the filters drop are set to NaN by
         `_finish`."""
         points, valid = self.triangulator(direction).measure(proj_map, valid, self.measurable_test(direction),
                                                              other=other)
-        return points, self._filtered(proj_map, valid, direction, window)
+        return points, self._filtered(proj_map, valid, direction, window, light)
 
     def _filtered(self, proj_map: NDArray[np.floating], valid: NDArray[np.bool_], direction: str,
-                  window: int | None) -> NDArray[np.bool_]:
+                  window: int | None, light: NDArray[np.floating] | None = None) -> NDArray[np.bool_]:
         """`valid` less what the 3D filters of `_measured` drop."""
         max_jump = default_max_jump(self.spec, direction)
 
@@ -455,8 +463,11 @@ class Scanner:
             narrowed = remove_narrow_runs(proj_map, valid, max_jump=max_jump, window=window,
                                           axis=1 if direction == "rows" else 0)
             valid = despeckle(narrowed) if (narrowed != valid).any() else valid
-        if self.remove_jump_edges and self.spec.kind in MULTI_FRAME_KINDS:
-            valid = remove_jump_edges(proj_map, valid, max_jump=max_jump)
+        if self.spec.kind in MULTI_FRAME_KINDS:
+            if self.remove_jump_edges:
+                valid = remove_jump_edges(proj_map, valid, max_jump=max_jump)
+            if self.remove_shadow_sides and light is not None:
+                valid = remove_shadow_sides(proj_map, valid, light, max_jump=max_jump)
         return valid
 
     def _scan_baseband(self, image: ArrayLike, out: ScanResult | None = None) -> tuple[ScanResult, Baseband, Carriers]:
@@ -489,7 +500,7 @@ class Scanner:
         # Orientation "both": the other coordinate lets a distorted projector be undistorted exactly.
         other = next((m.coord for d, m in maps.items() if d != direction), None)
         t1 = time.perf_counter()
-        points, valid = self._measured(decoded.coord, decoded.valid, direction, other=other)
+        points, valid = self._measured(decoded.coord, decoded.valid, direction, other=other, light=decoded.brightness)
         proj_map, stripe = _finish(points, valid, decoded.coord, decoded.index)
         t2 = time.perf_counter()
         result = ScanResult(points=points, valid=valid, texture=texture_from_dc(decoded.brightness),
