@@ -220,18 +220,15 @@ def remove_jump_edges(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float,
     the edge (a sphere's grazing limb), the first pixel beyond it decodes, consistently, to the
     surface behind (the wall's row, on the sphere's limb): a pixel beside a gap goes when a
     valid pixel within `reach` pixels (Chebyshev distance d) differs from it by more than
-    ``max_jump * d``, more than one surface's steepest slope allows.  Measured (README, "Single
-    shot against multi-shot"): on the realistic sphere at 1296x972 PMP's RMS 4.8 -> 1.1 mm and
-    the Gray code's 5.0 -> 2.9 mm, for 0.4 points of completeness; a tilted plane loses nothing.
+    ``max_jump * d``, more than one surface's steepest slope allows.  Measured (README, "Design
+    choices", mixed pixels): on the realistic sphere at 1296x972 (seeds 1, 2) PMP's RMS 4.9 ->
+    0.37 mm and the Gray code's 4.4 -> 2.2 mm, for 0.2-0.4 points of completeness; a tilted
+    plane loses nothing.
 
     Parameters
     ----------
-    proj_map : (H, W) float array
-        Projector coordinate per camera pixel (projector pixels along the phase direction).
-    valid : (H, W) bool array
-    max_jump : float
-        Largest difference (projector pixels) between neighbours of one surface
-        (`default_max_jump`).
+    proj_map, valid, max_jump
+        As for `remove_narrow_runs`.
     reach : int, optional
         Widest gap (camera pixels) looked across.  Default `JUMP_REACH`.
 
@@ -411,21 +408,17 @@ def remove_shadow_sides(proj_map: ArrayLike, valid: ArrayLike, light: ArrayLike,
     For a multi-frame capture, whose every pixel's light is its own (no demodulation window):
     blur lends the first pixels of a shadow (the steps' shadows on the wall below them, the
     wall beside a sphere's limb) the lit side's light, code and phase.  Measured (README,
-    "Single shot against multi-shot"): after `remove_jump_edges`, the realistic steps at
-    1296x972 PMP's RMS 5.0 -> 0.8 mm, the Gray code's 3.4 -> 0.5 mm, for at most 0.1 points of
-    completeness on smooth albedo; a checker's dark squares cost the Gray code 1.2-1.8 points
-    (its edges pass for shadows) for RMS 4-5 mm -> 0.5-0.8 mm.
+    "Design choices", mixed pixels): after `remove_jump_edges`, on the realistic steps at
+    1296x972 (seeds 1, 2) PMP's RMS 5.3 -> 1.6 mm, the Gray code's 1.9 -> 0.5 mm, for at most
+    0.1 points of completeness on smooth albedo; a checker's dark squares cost the Gray codes
+    1.2-1.8 points (their edges pass for shadows) for RMS 3.8-4.9 -> 0.4-1.0 mm.
 
     Parameters
     ----------
-    proj_map : (H, W) float array
-        Projector coordinate per camera pixel (projector pixels along the phase direction).
-    valid : (H, W) bool array
+    proj_map, valid, max_jump
+        As for `remove_narrow_runs`; a jump of more than `max_jump` ends a run.
     light : (H, W) float array
         Each pixel's light: the mean of a PMP capture's frames, a Gray code capture's white frame.
-    max_jump : float
-        Largest difference (projector pixels) between neighbours of one surface
-        (`default_max_jump`): a larger one ends a run.
 
     Returns
     -------
