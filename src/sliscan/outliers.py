@@ -250,19 +250,91 @@ def remove_jump_edges(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float,
     reach = JUMP_REACH if reach is None else int(reach)
     if not (max_jump > 0 and reach >= 1):
         raise InputError(f"max_jump and reach must be positive, got {max_jump} and {reach}")
-    inside = mask & np.isfinite(proj)
-    values = np.where(inside, proj, 0).astype(np.float32)
-    top = np.finfo(np.float32).max
+    inside = np.ascontiguousarray(mask & np.isfinite(proj))
+    values = np.ascontiguousarray(np.where(inside, proj, 0), dtype=np.float32)
     neighbours = np.ones((3, 3), np.uint8)
-    highest, lowest = np.where(inside, values, -top), np.where(inside, values, top)
-    beside_jump = far = np.zeros(proj.shape, bool)
-    for distance in range(1, reach + 1):  # the extremes within `distance`, one ring wider each time
-        highest, lowest = cv2.dilate(highest, neighbours), cv2.erode(lowest, neighbours)
-        far = far | (highest - values > max_jump * distance) | (values - lowest > max_jump * distance)
-        if distance == 1:
-            beside_jump = far.copy()
-    beside_gap = cv2.erode(inside.astype(np.uint8), neighbours, borderType=cv2.BORDER_REPLICATE) == 0
-    return mask & ~(inside & (beside_jump | (far & beside_gap)))
+    top = np.finfo(np.float32).max
+    raised, lowered = np.where(inside, values, -top), np.where(inside, values, top)  # the outside never wins
+    beside_jump = inside & ((cv2.dilate(raised, neighbours) - values > max_jump)
+                            | (values - cv2.erode(lowered, neighbours) > max_jump))
+    beside_gap = inside & (cv2.erode(inside.astype(np.uint8), neighbours, borderType=cv2.BORDER_REPLICATE) == 0)
+    candidate = np.flatnonzero(beside_gap & ~beside_jump)
+    # Which rings each candidate searches: the distances come in bands (1, 2], (2, 4], (4, 8], ...;
+    # a pixel at a distance d of band (inner, outer] can differ by more than max_jump d only if
+    # the extremes within `outer` lie more than max_jump (inner + 1) away (a dilation per band,
+    # each growing the last; then a compiled search of the flagged candidates' rings).
+    here = values.ravel()[candidate]
+    bands = np.zeros(candidate.size, np.uint8)
+    edges = _band_edges(reach)
+    highest, lowest = raised, lowered
+    for bit, (inner, outer) in enumerate(zip([1] + edges, edges)):
+        grow = np.ones((2 * (outer - (inner if bit else 0)) + 1,) * 2, np.uint8)
+        highest, lowest = cv2.dilate(highest, grow), cv2.erode(lowest, grow)  # the extremes within `outer`
+        limit = max_jump * (inner + 1)
+        reached = (highest.ravel()[candidate] - here > limit) | (here - lowest.ravel()[candidate] > limit)
+        bands |= reached.astype(np.uint8) << bit
+    flagged = bands > 0
+    candidate, bands = candidate[flagged], bands[flagged]
+    across = np.zeros(candidate.size, bool)
+    over_rows(lambda chunk: _across_gaps(values, inside, candidate, bands, np.array(edges, np.int64),
+                                         float(max_jump), chunk, across), candidate.size)
+    out = mask & ~beside_jump
+    out.ravel()[candidate[across]] = False
+    return out
+
+
+def _band_edges(reach: int) -> list[int]:
+    """The outer distances of `remove_jump_edges`' bands of rings: 2, 4, 8, ... up to `reach`.
+
+    >>> _band_edges(16), _band_edges(5), _band_edges(1)
+    ([2, 4, 8, 16], [2, 4, 5], [])
+    """
+    edges, outer = [], 2
+    while outer < reach * 2 and reach >= 2:
+        edges.append(min(outer, reach))
+        outer *= 2
+    return edges
+
+
+@numba.njit(cache=True, nogil=True)
+def _across_gaps(values: NDArray[np.float32], inside: NDArray[np.bool_], candidate: NDArray[np.intp],
+                 bands: NDArray[np.uint8], edges: NDArray[np.int64], max_jump: float, chunk: NDArray[np.intp],
+                 out: NDArray[np.bool_]) -> None:
+    """`remove_jump_edges`' gap test for the candidates (flat pixel indices) numbered in `chunk`:
+    marks `out` where a pixel `inside` at Chebyshev distance d differs by more than
+    ``max_jump d``, searching ring by ring (nearest first) the bands of rings that `bands` flags
+    (bit k: the rings out to ``edges[k]``)."""
+    width = values.shape[1]
+    for i in chunk:
+        y, x = candidate[i] // width, candidate[i] % width
+        here = values[y, x]
+        inner = 1
+        for k in range(edges.size):
+            if (bands[i] >> k) & 1:
+                for d in range(inner + 1, edges[k] + 1):
+                    if _ring_differs(values, inside, y, x, d, here, max_jump * d):
+                        out[i] = True
+                        break
+                if out[i]:
+                    break
+            inner = edges[k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ring_differs(values: NDArray[np.float32], inside: NDArray[np.bool_], y: int, x: int, d: int, here: float,
+                  limit: float) -> bool:
+    """Whether a pixel `inside` at Chebyshev distance exactly `d` from ``(y, x)`` differs from
+    `here` by more than `limit`."""
+    height, width = values.shape
+    for dy in range(-d, d + 1):
+        yy = y + dy
+        if yy < 0 or yy >= height:
+            continue
+        step = 1 if dy == -d or dy == d else 2 * d  # the top and bottom rows whole, else both ends
+        for xx in range(x - d, x + d + 1, step):
+            if 0 <= xx < width and inside[yy, xx] and abs(values[yy, xx] - here) > limit:
+                return True
+    return False
 
 
 def remove_narrow_runs(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float, window: int,
