@@ -58,7 +58,8 @@ Stages, each its own function:
    contrast is above 1.5 (`MID_RUN`).
 9. Then the pixels at the ends of runs (down the phase direction, and along the carriers on the
    capture itself) whose light puts their centre on the shadow's side of a light edge
-   (`sliscan.outliers.shadow_side`): blur, or a window ending at them, lends them the lit side's code.
+   (`sliscan.outliers.shadow_side`): blur, or a window ending at them, lends them the lit
+   side's code.
 10. Last, the ring of pixels next to any pixel not kept (`beside_gaps`, `GAP_RING`): whatever
     made that one fail reaches them a little less, and the error grows toward every gap.
 
@@ -76,8 +77,8 @@ from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
-from sliscan.outliers import shadow_side
 from sliscan.demodulate import RAMPED_PERIODS, Carriers, Demodulated, along_carriers
+from sliscan.outliers import shadow_side
 from sliscan.patterns import code_bits, fringe_line, fringe_phase, phase_shifts, stripe_codes, stripe_of_line
 from sliscan.types import PatternSpec
 
@@ -897,8 +898,9 @@ SHORT_RUN = 0.125
 MID_RUN = 0.5
 MID_RUN_CONTRAST = 1.5
 
-#: `outliers.shadow_side` along the carriers, on the capture's own pixels (`refine`'s `image`): their
-#: light carries the carriers' ripple, so it compares pixels a little farther apart.
+#: `outliers.shadow_side` along the carriers, on the capture's own pixels (`refine`'s
+#: `image`): their light carries the carriers' ripple, so it compares pixels a little farther
+#: apart.
 SHADOW_SIDE_REACH_CARRIERS = 3
 
 #: `extend` defaults: a pixel the decoding left out joins when at least this share of its box
@@ -1010,9 +1012,9 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         benchmark's record).  Needs the window demodulator's offsets.
     shadow_sides : bool
         Last, drop the pixels at the ends of runs down the phase direction whose DC puts their
-        centre on the shadow's side of the edge (`sliscan.outliers.shadow_side`), and with `image` those at the
-        ends of runs along the carriers whose own light does; if false, keep them (for the
-        benchmark's record).
+        centre on the shadow's side of the edge (`sliscan.outliers.shadow_side`), and with
+        `image` those at the ends of runs along the carriers whose own light does; if false,
+        keep them (for the benchmark's record).
     ramped_windows : bool
         Take the phase carriers' envelopes from the demodulator's two-period windows with a ramp
         per carrier where those lie on one run of the Gray code's line (`phase_envelopes`); if

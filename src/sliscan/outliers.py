@@ -443,17 +443,19 @@ def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: flo
     that ends at it, brings it enough of the lit side's light to decode that side's code and
     fringe: triangulated on its own ray, that is a point off both surfaces.  On the virtual
     rig's steps the boxes' shadows on the wall below them made such rows one to three pixels
-    deep along every horizontal edge (5 MP smooth steps: RMS error 5.9 -> 4.2 mm, completeness
-    unchanged to 0.1 points; README).
+    deep along every horizontal edge (phase channel, 5 MP smooth steps: RMS error 5.9 -> 4.2
+    mm, completeness unchanged to 0.1 points; multi-shot: `remove_shadow_sides`; README).
 
     Parameters
     ----------
     line : (H, W) float32 array
-        Projector lines, NaN where not kept; the phase direction along axis 0.
+        Projector lines, NaN where not kept.
     dc : (H, W) float32 array
-        Each pixel's light: down the phase direction (`axis` 0) `Demodulated.dc`, whose window
-        lies along the carriers; along the carriers (`axis` 1) the capture itself, since there
-        `Demodulated.dc` is the mean of a window that may lie on the other side of the edge.
+        Each pixel's light.  For the phase channel (`sliscan.fringe.refine`): down the phase
+        direction (`axis` 0) `Demodulated.dc`, whose window lies along the carriers; along the
+        carriers (`axis` 1) the capture itself, since there `Demodulated.dc` is the mean of a
+        window that may lie on the other side of the edge.  For a multi-frame capture, its own
+        light along both axes (`remove_shadow_sides`).
     jump : float
         Lines between neighbours that end a run.
     axis : {0, 1}

@@ -235,8 +235,9 @@ class Scanner:
         `sliscan.outliers.remove_narrow_runs`, with `default_max_jump`).  On by default.
     remove_jump_edges : bool
         Multi-frame kinds: drop the pixels beside a jump of more than `default_max_jump` in the
-        projector map, on both sides (the blur's mixed pixels along a depth edge:
-        `sliscan.outliers.remove_jump_edges`).  On by default.  The composite kinds have their
+        projector map, on both sides, and those beside a gap with another surface across it
+        (the blur's mixed pixels along a depth edge: `sliscan.outliers.remove_jump_edges`).  On
+        by default.  The composite kinds have their
         own (the narrow runs; with a phase channel, `sliscan.fringe.refine`'s ring beside its
         gaps), after which this one changed the phase pattern's scans not at all and cost the
         stripe patterns' right stripes 0.01-0.04 points for 0.1-0.3 % of RMS.
@@ -438,10 +439,10 @@ class Scanner:
         (`measurable`: outside the projector's light, seen at under `min_angle_deg`) or wrong
         codes: with `remove_narrow_runs`, runs narrower than the demodulation `window` (camera
         pixels; composite kinds) across a depth edge; with `remove_speckles`, small regions
-        that jump away from their neighbours; for multi-frame kinds, with `remove_jump_edges` the
-        pixels beside a jump or a gap to another surface, with `remove_shadow_sides` and `light`
-        (each pixel's light) those on a shadow's side of a light edge.  The points the filters drop are set to NaN by
-        `_finish`."""
+        that jump away from their neighbours; for multi-frame kinds, with `remove_jump_edges`
+        the pixels beside a jump or a gap to another surface, with `remove_shadow_sides` and
+        `light` (each pixel's light) those on a shadow's side of a light edge.  The points the
+        filters drop are set to NaN by `_finish`."""
         points, valid = self.triangulator(direction).measure(proj_map, valid, self.measurable_test(direction),
                                                              other=other)
         return points, self._filtered(proj_map, valid, direction, window, light)
