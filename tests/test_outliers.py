@@ -196,3 +196,35 @@ def test_shadow_side_takes_the_run_ends_darker_than_halfway_to_the_shadow():
     assert not shadow_side(line, dc, jump=50.0).any()
     line[:21] = np.nan
     assert not shadow_side(line, dc, jump=50.0).any()
+
+
+def test_jump_edges_search_equals_their_definition(rng):
+    """The pruned search (bands of rings flagged by dilations, then a compiled ring search)
+    drops exactly what the definition drops, on random maps with steps, gaps and NaNs."""
+    for trial in range(40):
+        height, width = rng.integers(5, 60, 2)
+        proj = np.cumsum(rng.normal(0, rng.choice([0.5, 3.0, 8.0]), (height, width)), axis=1)
+        proj[rng.random(proj.shape) < 0.05] += 200
+        proj[rng.random(proj.shape) < 0.02] = np.nan
+        valid = rng.random(proj.shape) < rng.choice([0.5, 0.8, 0.95])
+        for max_jump, reach in ((2.0, 1), (2.0, 5), (6.0, 16)):
+            inside = valid & np.isfinite(proj)
+            values = np.where(inside, proj, 0.0)
+            pad = reach + 1
+            padded, there = np.pad(values, pad), np.pad(inside, pad, constant_values=False)
+            frame = np.pad(np.ones(proj.shape, bool), pad, constant_values=False)
+            near = np.zeros(proj.shape, bool)
+            far = np.zeros(proj.shape, bool)
+            gap = np.zeros(proj.shape, bool)
+            for dy in range(-reach, reach + 1):
+                for dx in range(-reach, reach + 1):
+                    d = max(abs(dy), abs(dx))
+                    if d == 0:
+                        continue
+                    window = np.s_[pad + dy:pad + dy + height, pad + dx:pad + dx + width]
+                    differs = there[window] & (np.abs(padded[window] - values) > max_jump * d)
+                    near |= differs & (d == 1)
+                    far |= differs
+                    gap |= (d == 1) & frame[window] & ~there[window]
+            expected = valid & ~(inside & (near | (gap & far)))
+            np.testing.assert_array_equal(remove_jump_edges(proj, valid, max_jump=max_jump, reach=reach), expected)
