@@ -267,10 +267,10 @@ def remove_jump_edges(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float,
     here = values.ravel()[candidate]
     bands = np.zeros(candidate.size, np.uint8)
     edges = _band_edges(reach)
-    highest, lowest = raised, lowered
+    highest, lowest, grown = raised, lowered, 0
     for bit, (inner, outer) in enumerate(zip([1] + edges, edges)):
-        grow = np.ones((2 * (outer - (inner if bit else 0)) + 1,) * 2, np.uint8)
-        highest, lowest = cv2.dilate(highest, grow), cv2.erode(lowest, grow)  # the extremes within `outer`
+        grow = np.ones((2 * (outer - grown) + 1,) * 2, np.uint8)
+        highest, lowest, grown = cv2.dilate(highest, grow), cv2.erode(lowest, grow), outer  # extremes within outer
         limit = max_jump * (inner + 1)
         reached = (highest.ravel()[candidate] - here > limit) | (here - lowest.ravel()[candidate] > limit)
         bands |= reached.astype(np.uint8) << bit
@@ -290,10 +290,9 @@ def _band_edges(reach: int) -> list[int]:
     >>> _band_edges(16), _band_edges(5), _band_edges(1)
     ([2, 4, 8, 16], [2, 4, 5], [])
     """
-    edges, outer = [], 2
-    while outer < reach * 2 and reach >= 2:
-        edges.append(min(outer, reach))
-        outer *= 2
+    edges: list[int] = []
+    while reach >= 2 and (not edges or edges[-1] < reach):
+        edges.append(min(2 * edges[-1] if edges else 2, reach))
     return edges
 
 
