@@ -366,11 +366,14 @@ def _run_end(coarse: NDArray[np.float32], start: int, max_jump: float) -> int:
 
 @numba.njit(cache=True, nogil=True)
 def _segment_box_rows(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int, max_jump: float,
-                      rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+                      clamped: int, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """Box sums of `values` ``(K, H, W)`` over ``[x - radius, x + radius]`` along each row,
     clipped to the pixel's run: consecutive pixels with a finite `coarse` whose values differ by
-    at most `max_jump`.  Pixels outside every run get 0."""
+    at most `max_jump`.  Pixels outside every run get 0.  A box that reaches into the first or
+    last `clamped` pixels of a run at the frame's end is moved inward past them, keeping its
+    length (see `_twiced_box`)."""
     k_count, _, width = values.shape
+    length = 2 * radius + 1
     cum = np.zeros(width + 1)
     for r in rows:
         start = 0
@@ -386,18 +389,23 @@ def _segment_box_rows(values: NDArray[np.float32], coarse: NDArray[np.float32], 
                     cum[x - start + 1] = cum[x - start] + values[k, r, x]
                 for x in range(start, end):
                     lo, hi = max(x - radius, start), min(x + radius + 1, end)
+                    if start == 0 and lo < clamped and end >= clamped + length:
+                        lo, hi = clamped, clamped + length
+                    elif end == width and hi > width - clamped and start <= width - clamped - length:
+                        lo, hi = width - clamped - length, width - clamped
                     out[k, r, x] = cum[hi - start] - cum[lo - start]
             start = end
 
 
 def _segment_box(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int,
-                 max_jump: float, axis: int = 2) -> NDArray[np.float32]:
+                 max_jump: float, axis: int = 2, clamped: int = 0) -> NDArray[np.float32]:
     """`_segment_box_rows` along every row (`axis` 2) or `_segment_box_columns` down every
     column (`axis` 1) of `values` ``(K, H, W)``, in threads: ``(K, H, W)`` float32."""
     values, coarse = np.ascontiguousarray(values, dtype=np.float32), np.ascontiguousarray(coarse, dtype=np.float32)
     out = np.empty_like(values)
     if axis == 2:
-        over_rows(lambda rows: _segment_box_rows(values, coarse, radius, max_jump, rows, out), values.shape[1])
+        over_rows(lambda rows: _segment_box_rows(values, coarse, radius, max_jump, clamped, rows, out),
+                  values.shape[1])
     else:
         over_rows(lambda columns: _segment_box_columns(values, coarse, radius, max_jump, columns, out),
                   values.shape[2])
@@ -462,9 +470,19 @@ def _twiced_box(values: NDArray[np.float32], coarse: NDArray[np.float32], length
                 max_jump: float) -> NDArray[np.float32]:
     """``2 B - B B`` of a box sum `B` of `length` along axis 2 within runs (`_segment_box`), in
     units of `B`: the box's bias on a curved profile (``f'' length^2 / 24``) cancels to second
-    order ("twicing"), and so does any ripple of period `length`, which both boxes null."""
-    once = _segment_box(values, coarse, length // 2, max_jump)
-    twice = _segment_box(once, coarse, length // 2, max_jump)
+    order ("twicing"), and so does any ripple of period `length`, which both boxes null.
+
+    `length` is the demodulation window: at the frame's two ends, where it cannot be centred
+    (`sliscan.demodulate._window_start` keeps it inside the line), the first and last
+    ``length // 2`` pixels' values repeat those of the first and last centred window, and a
+    box over them would hold one window's estimate many times over, its ripple and noise
+    unaveraged (measured: a noise-free plane's line error 0.82 projector lines RMS within 30
+    pixels of the frame's sides against 0.33 inside; README, "Sub-stripe depth from one
+    frame").  Those boxes are moved inward past them, keeping their length; the position
+    channel of `with_positions` says where their sums lie, and `recentre` turns them back."""
+    clamped = length // 2
+    once = _segment_box(values, coarse, length // 2, max_jump, clamped=clamped)
+    twice = _segment_box(once, coarse, length // 2, max_jump, clamped=clamped)
     twice *= np.float32(1 / length)
     once *= np.float32(2)
     return np.subtract(once, twice, out=twice)  # in place: these are full frames
@@ -577,6 +595,14 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
                 slope[x] = 0.0
                 if summed[2, r, x] <= 0 or abs(summed[3, r, x] / summed[2, r, x] - x) < 0.5:
                     continue  # describes its own pixel: nothing to move
+                at_start, at_end = start == 0 and x < 3 * reach, end == width and x >= width - 3 * reach
+                if (at_start or at_end) and start + 6 * reach < end:
+                    # the frame's end: from the position described to two reaches inward (see `recentre`)
+                    inward = int(round(summed[3, r, x] / summed[2, r, x])) + (2 * reach if at_start else -2 * reach)
+                    inward = min(max(inward, start), end - 1)
+                    one = _slope(summed, r, x, r, inward, reach) if at_start else _slope(summed, r, inward, r, x, reach)
+                    slope[x] = one if np.isfinite(one) and abs(one) >= min_slope else 0.0
+                    continue
                 a, b = max(x - reach, start), min(x + reach, end - 1)
                 left, right = _slope(summed, r, a, r, x, 0.25 * reach), _slope(summed, r, x, r, b, 0.25 * reach)
                 if np.isfinite(left) and np.isfinite(right) and abs(left - right) <= 0.3 * max(abs(left), abs(right)):
@@ -613,7 +639,12 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
     times its position's distance from the pixel.  Else it stays: at a run's end one side is
     missing, so the pixels nearest an edge keep their bias (filling their slope in from the
     nearest measured one bent flat surfaces, where error patches read as slopes: README), and
-    a slope under `min_slope` is as likely the local error's as the fringe's.
+    a slope under `min_slope` is as likely the local error's as the fringe's.  Except at the
+    frame's two ends (runs that start at its first pixel or end at its last), which are no
+    edge: the surface goes on unseen, and within ``3 reach`` of them the (twiced) boxes
+    describe a point up to ``1.5 reach`` inward (`_twiced_box`).  There the slope is the phase change from
+    the position described to the box two `reach` inward of it (estimates a `reach` long on
+    either side rarely agree within 30 % there), kept if at least `min_slope`.
 
     Measured on the 5 MP sphere (README, "Sub-stripe depth from one frame"): the fitted
     radius 123.86 -> 123.24 mm (122.555 true), median error 1.41 -> 1.34 mm.
