@@ -64,7 +64,8 @@ BASE_GAMMA = 2.2
 #: `--patterns` keys -> names in `methods.method_specs`.
 PATTERNS = {"thesis": "CP thesis 4-bit", "sliscan": "CP sliscan 4-bit", "pmp": "PMP 1,8,64 x 4",
             "graycode": "Gray code 7-bit + 4-step phase", "phase": "CP sliscan 4-bit + phase"}
-#: Swept unless `--patterns` says otherwise (the README's figure; "phase" is issue 8's, not yet swept there).
+#: Swept unless `--patterns` says otherwise (the README's figure; "phase", issue 8's, is swept apart at 1296x972:
+#: README, "The phase pattern under the same factors").
 DEFAULT_PATTERNS = ("thesis", "sliscan", "pmp", "graycode")
 
 #: The figures of a row, in table order (`wrong_stripe` only for the composite patterns).
