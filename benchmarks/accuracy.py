@@ -116,6 +116,8 @@ DECODER_VARIANTS = {
                                                        dict(fringe_options=dict(gap_ring=0))),
     "sliscan 4-bit + phase (one-period windows only)": ("sliscan 4-bit + phase",
                                                          dict(fringe_options=dict(ramped_windows=False))),
+    "sliscan 4-bit + phase (frame's ends clipped)": ("sliscan 4-bit + phase",
+                                                     dict(fringe_options=dict(frame_ends=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
     "thesis 4-bit (per-pixel decisions)": ("thesis 4-bit", dict(decode_options=dict(order=False))),

@@ -467,7 +467,7 @@ def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32
 
 
 def _twiced_box(values: NDArray[np.float32], coarse: NDArray[np.float32], length: int,
-                max_jump: float) -> NDArray[np.float32]:
+                max_jump: float, frame_ends: bool = True) -> NDArray[np.float32]:
     """``2 B - B B`` of a box sum `B` of `length` along axis 2 within runs (`_segment_box`), in
     units of `B`: the box's bias on a curved profile (``f'' length^2 / 24``) cancels to second
     order ("twicing"), and so does any ripple of period `length`, which both boxes null.
@@ -479,8 +479,9 @@ def _twiced_box(values: NDArray[np.float32], coarse: NDArray[np.float32], length
     unaveraged (measured at 1296x972: a noise-free plane's line error 0.70 projector lines RMS
     within one window of the frame's sides against 0.33 inside; README, "Sub-stripe depth from
     one frame").  Those boxes are moved inward past them, keeping their length; the position
-    channel of `with_positions` says where their sums lie, and `recentre` turns them back."""
-    clamped = length // 2
+    channel of `with_positions` says where their sums lie, and `recentre` turns them back
+    (`frame_ends`; if false, they are clipped like any run's end)."""
+    clamped = length // 2 if frame_ends else 0
     once = _segment_box(values, coarse, length // 2, max_jump, clamped=clamped)
     twice = _segment_box(once, coarse, length // 2, max_jump, clamped=clamped)
     twice *= np.float32(1 / length)
@@ -531,7 +532,8 @@ def bridge_gaps(coarse: NDArray[np.float32], gap: int, max_jump: float) -> NDArr
 
 
 def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, along_carriers: int,
-                   along_phase: int, max_jump: float, bridge: bool = False) -> NDArray[np.float32]:
+                   along_phase: int, max_jump: float, bridge: bool = False,
+                   frame_ends: bool = True) -> NDArray[np.float32]:
     """Box sums of the phasors (in the carriers-along-axis-1 frame) within runs of one surface.
 
     Parameters
@@ -545,8 +547,10 @@ def smooth_phasors(phasor: NDArray[np.float32], coarse: NDArray[np.float32], *, 
         Box lengths in camera pixels along axis 1 and axis 0.
     bridge : bool
         Along axis 0, runs go on across gaps of up to half a box (`bridge_gaps`).
+    frame_ends : bool
+        Along axis 1, boxes at the frame's two ends skip the windows clamped there (`_twiced_box`).
     """
-    rows = _twiced_box(phasor, coarse, along_carriers, max_jump)
+    rows = _twiced_box(phasor, coarse, along_carriers, max_jump, frame_ends)
     runs = bridge_gaps(coarse, along_phase // 2, max_jump) if bridge else coarse
     return _segment_box(rows, runs, along_phase // 2, max_jump, axis=1)
 
@@ -580,7 +584,8 @@ def _slope(summed: NDArray[np.float32], ra: int, xa: int, rb: int, xb: int, min_
 
 @numba.njit(cache=True, nogil=True)
 def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max_jump: float, reach: int,
-                   min_slope: float, also: NDArray[np.float32], turn_also: bool, rows: NDArray[np.intp]) -> None:
+                   min_slope: float, frame_ends: bool, also: NDArray[np.float32], turn_also: bool,
+                   rows: NDArray[np.intp]) -> None:
     """`recentre` on the given `rows`, in place (and `also` if `turn_also`)."""
     width = coarse.shape[1]
     slope = np.zeros(width)
@@ -596,7 +601,7 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
                 if summed[2, r, x] <= 0 or abs(summed[3, r, x] / summed[2, r, x] - x) < 0.5:
                     continue  # describes its own pixel: nothing to move
                 at_start, at_end = start == 0 and x < 3 * reach, end == width and x >= width - 3 * reach
-                if (at_start or at_end) and start + 6 * reach < end:
+                if frame_ends and (at_start or at_end) and start + 6 * reach < end:
                     # the frame's end: from the position described to two reaches inward (see `recentre`)
                     inward = int(round(summed[3, r, x] / summed[2, r, x])) + (2 * reach if at_start else -2 * reach)
                     inward = min(max(inward, start), end - 1)
@@ -621,7 +626,7 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
 
 
 def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_jump: float, reach: int,
-             min_slope: float, also: NDArray[np.float32] | None = None) -> None:
+             min_slope: float, also: NDArray[np.float32] | None = None, frame_ends: bool = True) -> None:
     """Move each summed phasor's phase from the position it describes back to its pixel, in place.
 
     A pixel's envelopes come from the window the demodulator chose for it, which starts or
@@ -658,11 +663,14 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
     also : (K, H, W) float32 array, optional
         Other sums of the same phasors, whose channels 0 and 1 (real, imaginary) are turned by
         the same angle per pixel.
+    frame_ends : bool
+        Measure the slope at the frame's two ends as above; if false, those pixels keep their
+        bias like any run's end.
     """
     turn_also = also is not None
     also = also if turn_also else np.zeros((2, 1, 1), np.float32)
-    over_rows(lambda rows: _recentre_rows(summed, coarse, max_jump, reach, min_slope, also, turn_also, rows),
-              summed.shape[1])
+    over_rows(lambda rows: _recentre_rows(summed, coarse, max_jump, reach, min_slope, frame_ends, also, turn_also,
+                                          rows), summed.shape[1])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -965,7 +973,8 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
            dc_weights: bool = False, bridge: bool = True, recentre_rows: bool = True,
            edge_margin: bool = True, near_jump_contrast: float = NEAR_JUMP_CONTRAST,
            short_run: float = SHORT_RUN, mid_run_contrast: float = MID_RUN_CONTRAST, shadow_sides: bool = True,
-           ramped_windows: bool = True, gap_ring: int = GAP_RING, image: NDArray | None = None) -> Decoded:
+           ramped_windows: bool = True, gap_ring: int = GAP_RING, frame_ends: bool = True,
+           image: NDArray | None = None) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -1053,6 +1062,10 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     gap_ring : int
         Last, drop the kept pixels within this many pixels of one not kept (`GAP_RING`,
         `beside_gaps`); 0 keeps them (for the benchmark's record).
+    frame_ends : bool
+        The boxes at the frame's two ends skip the windows the demodulator clamped there, and
+        their slope is measured inward (`_twiced_box`, `recentre`); if false, they are clipped
+        like any run's end (for the benchmark's record).
     image : (H, W) array, optional
         The capture (camera orientation), for the test along the carriers.
 
@@ -1087,7 +1100,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     use_fine = smooth and (bridge or recentre_rows)
     fine, runs = np.zeros((4, 1, 1), np.float32), coarse
     if smooth:
-        rows = _twiced_box(phasor, coarse, carriers.window, max_jump)
+        rows = _twiced_box(phasor, coarse, carriers.window, max_jump, frame_ends)
         if use_fine:
             runs = bridge_gaps(coarse, along_phase // 2, max_jump) if bridge else coarse
             fine = np.empty((4, *coarse.shape), np.float32)
@@ -1100,7 +1113,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         summed = phasor.copy()
     if offset is not None:
         recentre(summed, coarse, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope,
-                 also=fine if use_fine else None)
+                 also=fine if use_fine else None, frame_ends=frame_ends)
     if use_fine and recentre_rows:
         recentre_along_phase(fine, runs, max_jump=max_jump, reach=along_phase)
     del runs
@@ -1132,9 +1145,10 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         del extra
         around = np.where(kept, out, np.where(joins, mean, np.float32(np.nan))).astype(np.float32)
         summed = (smooth_phasors(phasor, around, along_carriers=carriers.window, along_phase=along_phase,
-                                 max_jump=max_jump) if smooth else phasor.copy())
+                                 max_jump=max_jump, frame_ends=frame_ends) if smooth else phasor.copy())
         if offset is not None:
-            recentre(summed, around, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope)
+            recentre(summed, around, max_jump=max_jump, reach=carriers.window // 2, min_slope=min_slope,
+                     frame_ends=frame_ends)
         over_rows(lambda rows: _unwrap_rows(summed, around, period, min_modulation, 0.0, rows, line, strong, sure),
                   shape[0])
         previous, candidates = out.copy(), strong & joins
