@@ -586,13 +586,20 @@ def test_the_frames_sides_decode_as_well_as_the_middle():
     conditions = simulate.Conditions(albedo=simulate.UniformAlbedo(0.8), ambient=0.1, projector_gamma=2.2,
                                      full_well_e=None, seed=0)
     capture = simulate.render(rig, simulate.plane_scene(), patterns.render_pattern(spec), conditions)
-    result = Scanner(spec, rig.calibration).scan(capture.image)
-    error = result.proj_map - capture.truth.proj[..., 1]
     rms = lambda part: float(np.sqrt(np.nanmean(part ** 2)))  # noqa: E731
-    sides, middle = rms(np.concatenate([error[:, :45], error[:, -45:]], axis=1)), rms(error[:, 90:-90])
-    assert result.valid.mean() > 0.999
+
+    def sides_and_middle(**options):
+        result = Scanner(spec, rig.calibration, fringe_options=options).scan(capture.image)
+        error = result.proj_map - capture.truth.proj[..., 1]
+        assert result.valid.mean() > 0.999
+        return rms(np.concatenate([error[:, :45], error[:, -45:]], axis=1)), rms(error[:, 90:-90])
+
+    sides, middle = sides_and_middle()
     assert middle < 0.4
     assert sides < 1.2 * middle
+    clipped_sides, clipped_middle = sides_and_middle(frame_ends=False)  # the boxes clipped there
+    assert clipped_middle == pytest.approx(middle, abs=1e-6)
+    assert clipped_sides > 1.8 * middle
 
 
 def test_extending_fills_lit_pixels_the_gray_code_left_without_wrong_periods():
