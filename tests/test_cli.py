@@ -291,6 +291,25 @@ def test_pattern_drive_range(tmp_path: Path) -> None:
         assert bad.returncode == 2 and message in bad.stderr and not (tmp_path / "x.png").exists(), bad.stderr
 
 
+def test_a_precorrected_pattern_spans_the_whole_light_range(tmp_path: Path) -> None:
+    """--gamma pre-corrects the composite pattern and stretches it over the light's 0-1
+    (`patterns.PRECORRECTED_DRIVE`: B_p 0.165 against 0.125, A_p 0.34), unless --ap, --bp or
+    --drive say otherwise; the image is the stretched pattern through 1 / gamma."""
+    ok("pattern", "composite", "--projector", "1024x768", "--gamma", "2.2", "-o", "cp.png", cwd=tmp_path)
+    spec = PatternSpec.load(tmp_path / "cp.json")
+    assert spec.gamma == 2.2 and patterns.pattern_range(spec) == pytest.approx((0.0, 1.0), abs=1e-12)
+    assert spec.b_p == pytest.approx(0.165, abs=5e-4) and spec.a_p == pytest.approx(0.341, abs=5e-4)
+    image = read_image(tmp_path / "cp.png")
+    assert image.min() <= 0.5 / 255 and image.max() == 1.0
+    np.testing.assert_allclose(image, patterns.linear_pattern(spec) ** (1 / 2.2), atol=0.5 / 255 + 1e-6)
+    ok("pattern", "composite", "--projector", "1024x768", "--gamma", "2.2", "--ap", "0.5", "-o", "kept.png",
+       cwd=tmp_path)
+    kept = PatternSpec.load(tmp_path / "kept.json")
+    assert (kept.a_p, kept.b_p) == (0.5, 0.125)
+    ok("pattern", "composite", "--projector", "1024x768", "-o", "plain.png", cwd=tmp_path)
+    assert PatternSpec.load(tmp_path / "plain.json") == patterns.default_spec((1024, 768), image="plain.png")
+
+
 def test_existing_outputs_are_replaced_only_with_overwrite(plane: tuple[Path, str], tmp_path: Path) -> None:
     source, _ = plane
     for name in ("cp.json", "rig.json", "capture.png"):
@@ -521,6 +540,7 @@ def test_pattern_from_characterization_is_compensated_and_decodes(characterized:
     assert spec.carriers == default.carriers and spec.response is not None
     assert spec.weights[0] > 1.4 * spec.weights[-1]  # the highest carrier (bit 0) boosted against roll-off
     assert sum(spec.weights) == pytest.approx(sum(default.weights))
+    assert patterns.pattern_range(spec) == pytest.approx((0.0, 1.0), abs=1e-12)  # pre-corrected: the whole range
 
 
 def test_characterize_bad_input_is_one_line(characterized: Path, tmp_path: Path) -> None:

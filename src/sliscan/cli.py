@@ -364,7 +364,9 @@ _pattern_options = _options(
                  help="LOW,HIGH: set A_p and B_p so that the pattern spans exactly this range of linear "
                       "drive, e.g. 0.2,1 (its own extremes: its carriers seldom peak together; README, "
                       "'Sub-stripe depth from one frame'); excludes --ap and --bp."),
-    click.option("--gamma", type=POSITIVE, help="Gamma pre-correction of the projector [1: none]."),
+    click.option("--gamma", type=POSITIVE,
+                 help="Gamma pre-correction of the projector [1: none]; a pre-corrected composite pattern "
+                      "spans the whole light range (0-1) unless --ap, --bp or --drive say otherwise."),
     click.option("--orientation", type=click.Choice(["rows", "columns"]), default="rows", show_default=True,
                  help="Projector coordinate the stripes code."),
     click.option("--pilot", type=PilotType(), help="Pilot carrier frequency, or 'none'."),
@@ -447,8 +449,11 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
         measured = photometry.Characterization.load(characterization)
         with _about(characterization):  # compensated weights keep their sum, so B_p still fits
             spec = measured.apply(spec)
-    if drive is None and kind == "composite" and spec.phase_carriers and a_p is None and b_p is None:
-        drive = patterns.PHASE_DRIVE  # as `patterns.phase_spec`
+    if drive is None and kind == "composite" and a_p is None and b_p is None:
+        if spec.phase_carriers:
+            drive = patterns.PHASE_DRIVE  # as `patterns.phase_spec`
+        elif spec.gamma != 1.0 or spec.response is not None:
+            drive = patterns.PRECORRECTED_DRIVE
     return spec if drive is None else patterns.stretch_drive(spec, *drive)
 
 

@@ -363,6 +363,17 @@ def carriers_above(carriers: tuple[float, ...], count: int = 3) -> tuple[float, 
 #: where an uncorrected gamma of 2.2 leaves 3 % of the light.
 PHASE_DRIVE = (0.2, 1.0)
 
+#: The light range a composite stripe pattern pre-corrected for the projector's response spans
+#: (`stretch_drive` on the linear pattern; `sliscan pattern composite --gamma` or
+#: `--from-characterization`).  An uncorrected gamma of 2.2 halves the mean light of eq. 3.1's
+#: A_p = 0.5 and doubles each carrier's modulation over it (0.51-0.54 against 0.25), contrast a
+#: pre-correction gives back unless the pattern uses the light's whole range: its four carriers
+#: never all trough together, so eq. 3.1 spans only 0.24-1 of it.  Stretched over 0-1 (A_p
+#: 0.34, B_p 0.165) the pre-corrected pattern decodes more of the virtual rig's captures than
+#: the uncorrected one, and the unstretched pre-corrected one fewer (README, "Robustness":
+#: 1296x972, sphere and steps, smooth and checkered, seeds 5-7).
+PRECORRECTED_DRIVE = (0.0, 1.0)
+
 
 def phase_spec(projector_size: tuple[int, int] = (1024, 768), **changes) -> PatternSpec:
     """`default_spec` plus a 3-step phase channel (issue 8): sub-stripe depth from one frame.
