@@ -370,8 +370,8 @@ PHASE_DRIVE = (0.2, 1.0)
 #: pre-correction gives back unless the pattern uses the light's whole range: its four carriers
 #: never all trough together, so eq. 3.1 spans only 0.24-1 of it.  Stretched over 0-1 (A_p
 #: 0.34, B_p 0.165) the pre-corrected pattern decodes more of the virtual rig's captures than
-#: the uncorrected one, and the unstretched pre-corrected one fewer (README, "Robustness":
-#: 1296x972, sphere and steps, smooth and checkered, seeds 5-7).
+#: the uncorrected one (all 12 at 1296x972, seeds 5-7; 7 of 8 at 5 MP: not sliscan's checkered
+#: steps), and the unstretched pre-corrected one fewer (README, "Robustness").
 PRECORRECTED_DRIVE = (0.0, 1.0)
 
 
