@@ -121,6 +121,9 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",
                                                  dict(decode_options=dict(order=False, min_snr=3.0, min_confidence=0.1))),
     "thesis 4-bit (per-pixel decisions)": ("thesis 4-bit", dict(decode_options=dict(order=False))),
+    "thesis 4-bit (stripe centres)": ("thesis 4-bit", dict(interpolate_stripes=False)),
+    "sliscan 4-bit (stripe centres)": ("sliscan 4-bit", dict(interpolate_stripes=False)),
+    "sliscan 4-bit + phase (no border lines)": ("sliscan 4-bit + phase", dict(interpolate_stripes=False)),
 }
 
 

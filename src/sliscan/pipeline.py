@@ -28,6 +28,7 @@ from sliscan.outliers import (default_max_jump, remove_jump_edges, remove_narrow
 from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
 from sliscan.sequences import decode_frames
+from sliscan.staircase import interpolate_lines, prefer_borders
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
 
 
@@ -246,6 +247,13 @@ class Scanner:
         light puts their centre on the shadow's side of a light edge (`sliscan.outliers.
         remove_shadow_sides`; the phase channel has its own in `sliscan.fringe.refine`).  On by
         default.
+    interpolate_stripes : bool
+        Methods ``window`` and ``bandpass``: each pixel's projector line interpolated between
+        the located borders of its stripe instead of the stripe's centre
+        (`sliscan.staircase.interpolate_lines`: removes the staircase); with a phase channel,
+        the interpolated line where it agrees with the phase's (`sliscan.staircase.
+        prefer_borders`).  On by default; false gives the stripe centres (the thesis's output),
+        or the phase's lines.
     albedo : str or None
         Methods ``window`` and ``baseband``: the albedo estimate the capture is divided by
         before demodulation (`sliscan.demodulate.normalise_albedo`; ``"steps"``, the default,
@@ -276,6 +284,7 @@ class Scanner:
     remove_narrow_runs: bool = True
     remove_jump_edges: bool = True
     remove_shadow_sides: bool = True
+    interpolate_stripes: bool = True
     albedo: str | None = "steps"
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
@@ -405,8 +414,12 @@ class Scanner:
         t0 = time.perf_counter()
         demod, carriers = self.demodulate(image)
         t1 = time.perf_counter()
-        decoded = fringe.refine(decode(demod, self.spec, **self.decode_options), demod, carriers, self.spec,
-                                image=image, **self.fringe_options)
+        stripes = decode(demod, self.spec, **self.decode_options)
+        decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image, **self.fringe_options)
+        if self.interpolate_stripes:
+            lines = interpolate_lines(stripes, self.spec, stripe_px=self.spec.phase_lines / self.spec.stripes
+                                      / carriers.scale, offset=demod.offset, window=carriers.window)
+            decoded = prefer_borders(decoded, lines.proj_map, self.spec) if self.spec.phase_carriers else lines
         t2 = time.perf_counter()
         points, valid = self._measured(decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
         proj_map, stripe = _finish(points, valid, decoded.proj_map, decoded.stripe)

@@ -1,0 +1,324 @@
+"""Removing the stripe staircase: projector lines interpolated between located stripe borders.
+
+A stripe pattern's decoder knows each pixel's stripe, so its projector line is the stripe's
+centre, and the depth is a staircase (the "blinds" of the thesis's figs. 6.3-6.4): a stripe of
+the 4-bit pattern is 48 projector lines, 60-120 mm deep at 0.8 m.  But the projector line of
+every *border* between two stripes is known exactly (half way between the last line of one and
+the first of the next), and the camera sees each border sharply along the phase direction: the
+demodulator's windows run along the carriers, so the bit that flips there changes level within
+a pixel or two down the phase direction, as sharply as the optics blur it.
+
+`interpolate_lines` therefore walks each camera line along the phase direction, and where two
+runs of neighbouring stripes meet (across at most `MAX_GAP` of a stripe of undecided pixels),
+it places the border where the level of the one bit that flips between them crosses the
+midpoint of its two sides' levels (linearly between pixels; the levels' gain varies with the
+light, so the midpoint comes from the pixels near the border, past the blurred ones, not 0.5).
+Each run's pixels then get the line of a monotone cubic through the borders along the line
+(Fritsch-Carlson, as scipy's PCHIP: it follows a surface's curvature, which a straight line
+between two borders would cut); a run with one border (at a depth or shadow edge, or the
+frame's end) is extended from it with the mean slope of the two-border runs around it, and one
+with none keeps its stripe's centre.  Where a border crosses the carriers' lines obliquely, a
+demodulation window off the pixel's centre (`Demodulated.offset`) sees the border where it lies
+at that window's centre: each line is moved back by its slope along the carriers times that
+offset.  Every line is first clipped to its stripe's range (the decoded stripe is never
+changed; only that move may take a line a little past its stripe's border).
+
+With a phase channel the interpolated line replaces the phase's where the two agree
+(`prefer_borders`): the borders are the more precise, the phase the more robust.  Measured on
+the virtual rig: README, "Removing the staircase".
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from sliscan._threads import over_rows
+from sliscan.decode import Decoded
+from sliscan.demodulate import along_carriers
+from sliscan.patterns import code_bits, stripe_center, stripe_codes, stripe_of_line
+from sliscan.types import PatternSpec
+
+#: A border is located between two runs of neighbouring stripes at most this fraction of a
+#: stripe's height (camera pixels along the phase direction) apart; runs of one stripe that
+#: far apart are joined.
+MAX_GAP = 0.25
+#: A run with one border takes the mean slope of the runs with two within this fraction of a
+#: stripe's height (along both axes).
+SLOPE_REACH = 0.5
+#: Central differences of the interpolated lines along the carriers steeper than this (projector
+#: lines per camera pixel) cross a depth edge: `interpolate_lines` leaves them out of the slope.
+MAX_SLOPE = 2.0
+#: `prefer_borders` takes the border-interpolated line where it lies within this many projector
+#: lines of the phase channel's.
+BORDER_AGREEMENT = 2.0
+#: The levels either side of a border are averaged over at most `SIDE` pixels of each run,
+#: leaving out the `SKIP` next to the border (blur mixes the two sides' levels there, unevenly
+#: where the border falls off a pixel's centre); a shorter run gives what it has.
+SIDE = 5
+SKIP = 3
+
+
+def border_lines(spec: PatternSpec) -> NDArray[np.float64]:
+    """Projector line of the border between stripe ``k`` and ``k + 1``, ``(S - 1,)``: half way
+    between the last line of the one and the first of the other.
+
+    >>> border_lines(PatternSpec())[:2].tolist()
+    [47.5, 95.5]
+    """
+    per = spec.phase_lines / spec.stripes
+    return np.ceil(np.arange(1, spec.stripes) * per - 0.5) - 0.5
+
+
+def flipping_planes(spec: PatternSpec) -> NDArray[np.intp]:
+    """Bit plane (0 the most significant, as `Decoded.levels`) that flips between stripe ``k``
+    and ``k + 1``, ``(S - 1,)``: Gray codes of neighbours differ in exactly one bit.
+
+    >>> flipping_planes(PatternSpec(bits=3, carriers=(32.0, 64.0, 96.0), weights=(1.0, 1.0, 1.0))).tolist()
+    [2, 1, 2, 0, 2, 1, 2]
+    """
+    planes = code_bits(stripe_codes(spec), spec.bits).astype(np.intp)  # (S, K)
+    return np.argmax(planes[1:] != planes[:-1], axis=1).astype(np.intp)
+
+
+@numba.njit(cache=True, inline="always")
+def _side_mean(levels: NDArray[np.float32], plane: int, r: int, a: int, b: int) -> float:
+    """Mean of ``levels[plane, r, a:b + 1]``."""
+    total = 0.0
+    for x in range(a, b + 1):
+        total += levels[plane, r, x]
+    return total / (b - a + 1)
+
+
+@numba.njit(cache=True, inline="always")
+def _crossing(levels: NDArray[np.float32], plane: int, r: int, a: int, b: int, high: float, low: float) -> float:
+    """Where ``levels[plane, r]`` first crosses from the `high` side of the midpoint of `high`
+    and `low` to the other between pixels `a` and `b` (linearly between pixels); the middle of
+    ``a .. b`` if it does not."""
+    middle, sign = 0.5 * (high + low), 1.0 if high > low else -1.0
+    for x in range(a, b):
+        v0, v1 = (levels[plane, r, x] - middle) * sign, (levels[plane, r, x + 1] - middle) * sign
+        if v0 > 0 >= v1:
+            return x + v0 / (v0 - v1)
+    return 0.5 * (a + b)
+
+
+@numba.njit(cache=True, inline="always")
+def _secant(position: NDArray[np.float64], line: NDArray[np.float64], j: int, count: int) -> float:
+    """Slope from border `j` to border ``j + 1`` (of `count`; NaN position: none), NaN if either
+    is missing or both have one line."""
+    if j < 0 or j + 1 >= count or not (np.isfinite(position[j]) and np.isfinite(position[j + 1])):
+        return np.nan
+    if line[j + 1] == line[j]:
+        return np.nan
+    return (line[j + 1] - line[j]) / max(position[j + 1] - position[j], 1e-6)
+
+
+@numba.njit(cache=True, inline="always")
+def _tangent(position: NDArray[np.float64], line: NDArray[np.float64], j: int, count: int) -> float:
+    """Slope of the line at border `j` for a monotone cubic through the borders (Fritsch-Carlson,
+    as scipy's PCHIP): the weighted harmonic mean of the secants on either side where both
+    exist, else the three-point estimate from the two secants on the one side (limited as
+    PCHIP's end slopes are), else the one secant."""
+    d0, d1 = _secant(position, line, j - 1, count), _secant(position, line, j, count)
+    if np.isfinite(d0) and np.isfinite(d1):
+        if d0 * d1 <= 0:
+            return 0.0
+        h0, h1 = position[j] - position[j - 1], position[j + 1] - position[j]
+        w0, w1 = 2 * h1 + h0, h1 + 2 * h0
+        return (w0 + w1) / (w0 / d0 + w1 / d1)
+    if np.isfinite(d1):  # the first border of a stretch: the secants after it
+        near, far, h0 = d1, _secant(position, line, j + 1, count), position[j + 1] - position[j]
+        h1 = position[j + 2] - position[j + 1] if np.isfinite(far) else 0.0
+    elif np.isfinite(d0):  # the last: the secants before it
+        near, far, h0 = d0, _secant(position, line, j - 2, count), position[j] - position[j - 1]
+        h1 = position[j - 1] - position[j - 2] if np.isfinite(far) else 0.0
+    else:
+        return np.nan
+    if not np.isfinite(far):
+        return near
+    m = ((2 * h0 + h1) * near - h0 * far) / (h0 + h1)
+    if m * near <= 0:
+        return 0.0
+    if near * far <= 0 and abs(m) > 3 * abs(near):
+        return 3 * near
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], levels: NDArray[np.float32],
+                      planes: NDArray[np.intp], borders: NDArray[np.float64], max_gap: int, rows: NDArray[np.intp],
+                      slope: NDArray[np.float32], anchor: NDArray[np.float32], line_at: NDArray[np.float32],
+                      near_slope: NDArray[np.float32], between: NDArray[np.float32], offset: NDArray[np.float32],
+                      described: NDArray[np.float32]) -> None:
+    """The borders along the given `rows` (phase direction along axis 1), into the ``(H, W)``
+    outputs (NaN elsewhere): for the valid pixels of a run between two borders of different
+    lines the line's `slope` (lines per pixel), one border (`anchor`, its position; `line_at`,
+    its line) and the cubic between the two (`between`); for a run with one border that
+    border, and the slope of the run beyond it (`near_slope`) if that one has two.  With
+    `offset` ``(H, W)`` (`Demodulated.offset`, framed likewise; ``(1, 1)``: none), `described`:
+    where along the carriers the levels that placed the run's borders were measured, relative
+    to the pixel (interpolated between its two borders)."""
+    width = stripe.shape[1]
+    first, last = np.empty(width, np.intp), np.empty(width, np.intp)
+    label = np.empty(width, np.intp)
+    position, line, moved = np.empty(width), np.empty(width), np.zeros(width)
+    offsets = offset.shape[0] > 1
+    for r in rows:
+        n, x = 0, 0  # the runs of one stripe, joined across gaps of at most max_gap pixels
+        while x < width:
+            if not valid[r, x]:
+                x += 1
+                continue
+            if n > 0 and label[n - 1] == stripe[r, x] and x - last[n - 1] - 1 <= max_gap:
+                last[n - 1] = x
+            else:
+                first[n], last[n], label[n] = x, x, stripe[r, x]
+                n += 1
+            x += 1
+        for i in range(n - 1):  # the border after run i, if any: its position and line
+            position[i] = np.nan
+            k, k2 = label[i], label[i + 1]
+            if abs(k - k2) != 1 or first[i + 1] - last[i] - 1 > max_gap:
+                continue
+            plane = planes[min(k, k2)]
+            a = max(first[i], last[i] - SKIP - SIDE + 1)  # each side's pixels, past the blurred ones
+            high = _side_mean(levels, plane, r, a, max(a, last[i] - SKIP))
+            b = min(last[i + 1], first[i + 1] + SKIP + SIDE - 1)
+            low = _side_mean(levels, plane, r, min(b, first[i + 1] + SKIP), b)
+            position[i] = _crossing(levels, plane, r, last[i], first[i + 1], high, low)
+            line[i] = borders[min(k, k2)]
+            if offsets:  # the offset of the windows at the crossing, between its two pixels
+                j = min(int(position[i]), width - 2)
+                f = position[i] - j
+                moved[i] = (1 - f) * offset[r, j] + f * offset[r, j + 1]
+        for i in range(n):
+            before = i > 0 and np.isfinite(position[i - 1])
+            after = i < n - 1 and np.isfinite(position[i])
+            if not (before or after):
+                continue
+            own, near, y0, l0 = np.nan, np.nan, 0.0, 0.0
+            if before and after and line[i] != line[i - 1]:
+                y0, l0 = position[i - 1], line[i - 1]
+                own = (line[i] - l0) / max(position[i] - y0, 1e-6)
+            elif before:
+                y0, l0 = position[i - 1], line[i - 1]
+                if i > 1 and np.isfinite(position[i - 2]) and line[i - 1] != line[i - 2]:
+                    near = (l0 - line[i - 2]) / max(y0 - position[i - 2], 1e-6)
+            else:
+                y0, l0 = position[i], line[i]
+                if i < n - 2 and np.isfinite(position[i + 1]) and line[i + 1] != line[i]:
+                    near = (line[i + 1] - l0) / max(position[i + 1] - y0, 1e-6)
+            m0 = m1 = own
+            if np.isfinite(own):
+                m0, m1 = _tangent(position, line, i - 1, n - 1), _tangent(position, line, i, n - 1)
+            for x in range(first[i], last[i] + 1):
+                if valid[r, x]:
+                    slope[r, x], anchor[r, x], line_at[r, x], near_slope[r, x] = own, y0, l0, near
+                    if np.isfinite(own):  # cubic Hermite between the two borders
+                        h = position[i] - y0
+                        t = (x - y0) / h
+                        between[r, x] = ((2 * t ** 3 - 3 * t ** 2 + 1) * l0 + (t ** 3 - 2 * t ** 2 + t) * h * m0
+                                         + (3 * t ** 2 - 2 * t ** 3) * line[i] + (t ** 3 - t ** 2) * h * m1)
+                    if offsets:
+                        if before and after:
+                            t = min(max((x - position[i - 1]) / max(position[i] - position[i - 1], 1e-6), 0.0), 1.0)
+                            described[r, x] = (1 - t) * moved[i - 1] + t * moved[i]
+                        else:
+                            described[r, x] = moved[i - 1] if before else moved[i]
+
+
+def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
+                      offset: NDArray[np.float32] | None = None, window: int = 1) -> Decoded:
+    """`decoded` with each valid pixel's projector line interpolated between the stripe borders
+    around it instead of its stripe's centre (see the module's docstring); stripes and
+    validity unchanged.
+
+    Parameters
+    ----------
+    decoded : Decoded
+        A stripe pattern's decoding (camera orientation), with its bit levels.
+    spec : PatternSpec
+        The pattern.
+    stripe_px : float
+        About how many camera pixels one stripe spans along the phase direction (sets the
+        largest gap a border may lie in, `MAX_GAP`, and the reach of `SLOPE_REACH`).
+    offset : (H, W) array, optional
+        `Demodulated.offset`: where along the carriers each pixel's levels were measured.  Where
+        a border crosses the carriers' lines obliquely, a window off the pixel's centre sees it
+        where it lies at that window's centre; each line is moved back by the line's slope along
+        the carriers (measured on the interpolated lines over `window` pixels) times that offset.
+    window : int
+        The demodulation window, pixels along the carriers (with `offset`).
+    """
+    frame = lambda a: np.ascontiguousarray(along_carriers(a, spec).swapaxes(-1, -2))  # noqa: E731  phase along axis 1
+    stripe, valid, levels = frame(decoded.stripe), frame(decoded.valid), frame(decoded.levels)
+    slope, anchor, line_at, near_slope, between, described = (np.full(stripe.shape, np.nan, np.float32)
+                                                               for _ in range(6))
+    moved = np.zeros((1, 1), np.float32) if offset is None else frame(offset.astype(np.float32))
+    planes, borders = flipping_planes(spec), border_lines(spec)
+    max_gap = max(1, int(round(MAX_GAP * stripe_px)))
+    over_rows(lambda rows: _interpolate_rows(stripe, valid, levels, planes, borders, max_gap, rows, slope, anchor,
+                                             line_at, near_slope, between, moved, described), stripe.shape[0])
+    # a run with one border takes the slope of the two-border runs around it (or else of the run beyond its border)
+    known = np.isfinite(slope)
+    reach = max(1, int(round(SLOPE_REACH * stripe_px)))
+    size = (2 * reach + 1, 2 * reach + 1)
+    weight = cv2.boxFilter(known.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.boxFilter(np.where(known, slope, 0).astype(np.float32), -1, size, normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        around = np.where(weight >= 1, total / weight, np.nan)
+    slope = np.where(known, slope, np.where(np.isfinite(around), around, near_slope))
+    position = np.arange(stripe.shape[1], dtype=np.float32)[None, :]
+    k = np.clip(stripe, 0, spec.stripes - 1)
+    centres = stripe_center(np.arange(spec.stripes), spec)
+    low = np.concatenate([[2 * centres[0] - borders[0]], borders])[k]  # each stripe's range of lines
+    high = np.concatenate([borders, [2 * centres[-1] - borders[-1]]])[k]
+    with np.errstate(invalid="ignore"):
+        line = np.clip(np.where(np.isfinite(between), between, line_at + slope * (position - anchor)), low, high)
+        line = line.astype(np.float32)
+        if offset is not None:  # after the clip: the stripe was decided from the same offset windows
+            line -= np.nan_to_num(_slope_along_carriers(line, window) * described)
+    line = np.where(np.isfinite(line), line, centres[k]).astype(np.float32)
+    line[~valid] = np.nan
+    return replace(decoded, proj_map=np.ascontiguousarray(along_carriers(line.swapaxes(0, 1), spec)))
+
+
+def _slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.float32]:
+    """Mean change of `line` ``(H, W)`` (carriers along axis 0) per pixel along the carriers
+    over `window` pixels, from the central differences that stay on one surface (under
+    `MAX_SLOPE` lines per pixel), where at least a quarter of them do; NaN elsewhere."""
+    step = np.full(line.shape, np.nan, np.float32)
+    step[1:-1] = 0.5 * (line[2:] - line[:-2])
+    usable = np.isfinite(step) & (np.abs(step) < MAX_SLOPE)
+    size = (1, max(1, window) | 1)
+    total = cv2.boxFilter(np.where(usable, step, 0).astype(np.float32), -1, size, normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(usable.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count >= 0.25 * max(window, 1), total / count, np.nan).astype(np.float32)
+
+
+def prefer_borders(refined: Decoded, border_line: NDArray[np.float32], spec: PatternSpec, *,
+                   agreement: float = BORDER_AGREEMENT) -> Decoded:
+    """A phase channel's decoding (`sliscan.fringe.refine`) with the border-interpolated line
+    (`interpolate_lines` of the same capture's Gray code) wherever that lies within
+    `agreement` projector lines of the phase's, and the stripe of that line there (as
+    `sliscan.fringe.refine` numbers a line's stripe); validity unchanged.
+
+    The borders place a pixel more precisely than the phase (on the virtual rig's planes 0.2
+    projector lines RMS against 0.7: each border is seen sharply along the phase direction,
+    while the fringe's phase is a window's estimate), but a wrong stripe or a border missed
+    moves a run's line by up to a stripe, which the phase, unwrapped robustly, does not.
+    `border_line` ``(H, W)``: NaN where not interpolated.
+    """
+    with np.errstate(invalid="ignore"):
+        agree = np.abs(border_line - refined.proj_map) <= agreement
+    line = np.where(agree, border_line, refined.proj_map).astype(np.float32)
+    stripe = np.where(agree, stripe_of_line(line, spec), refined.stripe).astype(np.int16)
+    return replace(refined, proj_map=line, stripe=stripe)
