@@ -220,7 +220,7 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], level
                 if valid[r, x]:
                     slope[r, x], anchor[r, x], line_at[r, x], near_slope[r, x] = own, y0, l0, near
                     if np.isfinite(own):  # cubic Hermite between the two borders
-                        h = position[i] - y0
+                        h = max(position[i] - y0, 1e-6)
                         t = (x - y0) / h
                         between[r, x] = ((2 * t ** 3 - 3 * t ** 2 + 1) * l0 + (t ** 3 - 2 * t ** 2 + t) * h * m0
                                          + (3 * t ** 2 - 2 * t ** 3) * line[i] + (t ** 3 - t ** 2) * h * m1)
