@@ -1,5 +1,7 @@
 """Removing the stripe staircase: lines interpolated between located stripe borders."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,22 @@ def test_lines_between_two_borders_follow_a_linear_projection_exactly():
     assert np.abs(out.proj_map[outer] - line[outer]).max() < 0.05
     # the stripe centres the interpolation replaces are up to half a stripe off
     assert np.abs(patterns.stripe_center(stripe, spec) - line).max() > 20
+
+
+def test_a_columns_pattern_is_interpolated_along_the_camera_rows():
+    rows_spec = patterns.thesis_spec((1024, 768))
+    columns_spec = patterns.thesis_spec((1024, 768), orientation="columns")
+    rows, cols = np.mgrid[0:300, 0:40]
+    line = 62.0 + 1.5 * rows + 0.2 * cols
+    decoded = _synthetic(line, rows_spec)
+    offset = np.full(line.shape, 5.0, np.float32)
+    by_rows = interpolate_lines(decoded, rows_spec, stripe_px=32, offset=offset, window=9)
+    # the same decoding transposed: the phase direction along the camera's rows
+    flipped = Decoded(stripe=decoded.stripe.T, proj_map=decoded.proj_map.T, valid=decoded.valid.T,
+                      lit=decoded.lit.T, confidence=decoded.confidence.T, levels=decoded.levels.transpose(0, 2, 1))
+    columns_spec = replace(columns_spec, projector_size=(768, 1024))  # the same lines per stripe
+    by_columns = interpolate_lines(flipped, columns_spec, stripe_px=32, offset=offset.T, window=9)
+    np.testing.assert_allclose(by_columns.proj_map, by_rows.proj_map.T, atol=1e-4)
 
 
 def test_a_curved_projection_is_followed_by_the_monotone_cubic():

@@ -255,53 +255,82 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
     window : int
         The demodulation window, pixels along the carriers (with `offset`).
     """
-    frame = lambda a: np.ascontiguousarray(along_carriers(a, spec).swapaxes(-1, -2))  # noqa: E731  phase along axis 1
-    stripe, valid, levels = frame(decoded.stripe), frame(decoded.valid), frame(decoded.levels)
-    slope, anchor, line_at, near_slope, between, described = (np.full(stripe.shape, np.nan, np.float32)
-                                                               for _ in range(6))
-    moved = np.zeros((1, 1), np.float32) if offset is None else frame(offset.astype(np.float32))
+    # the kernels walk each line along the phase direction (axis 1 of these views); the arrays
+    # themselves stay in the camera's orientation (no transposed copies)
+    view = lambda a: a.swapaxes(-1, -2) if spec.orientation == "rows" else a  # noqa: E731
+    shape = decoded.stripe.shape
+    slope, anchor, line_at, near_slope, between, described, line = (np.full(shape, np.nan, np.float32)
+                                                                     for _ in range(7))
+    moved = np.zeros((1, 1), np.float32) if offset is None else view(np.asarray(offset, np.float32))
+    stripe, valid = view(decoded.stripe), view(decoded.valid)
     planes, borders = flipping_planes(spec), border_lines(spec)
     max_gap = max(1, int(round(MAX_GAP * stripe_px)))
-    over_rows(lambda rows: _interpolate_rows(stripe, valid, levels, planes, borders, max_gap, rows, slope, anchor,
-                                             line_at, near_slope, between, moved, described), stripe.shape[0])
-    # a run with one border takes the slope of the two-border runs around it (or else of the run beyond its border)
+    over_rows(lambda rows: _interpolate_rows(stripe, valid, view(decoded.levels), planes, borders, max_gap, rows,
+                                             view(slope), view(anchor), view(line_at), view(near_slope),
+                                             view(between), moved, view(described)), stripe.shape[0])
+    # a run with one border takes the mean slope of the two-border runs around it
     known = np.isfinite(slope)
     reach = max(1, int(round(SLOPE_REACH * stripe_px)))
     size = (2 * reach + 1, 2 * reach + 1)
     weight = cv2.boxFilter(known.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    total = cv2.boxFilter(np.where(known, slope, 0).astype(np.float32), -1, size, normalize=False,
+    total = cv2.boxFilter(np.where(known, slope, np.float32(0)), -1, size, normalize=False,
                           borderType=cv2.BORDER_CONSTANT)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        around = np.where(weight >= 1, total / weight, np.nan)
-    slope = np.where(known, slope, np.where(np.isfinite(around), around, near_slope))
-    position = np.arange(stripe.shape[1], dtype=np.float32)[None, :]
-    k = np.clip(stripe, 0, spec.stripes - 1)
     centres = stripe_center(np.arange(spec.stripes), spec)
-    low = np.concatenate([[2 * centres[0] - borders[0]], borders])[k]  # each stripe's range of lines
-    high = np.concatenate([borders, [2 * centres[-1] - borders[-1]]])[k]
-    with np.errstate(invalid="ignore"):
-        line = np.clip(np.where(np.isfinite(between), between, line_at + slope * (position - anchor)), low, high)
-        line = line.astype(np.float32)
-        if offset is not None:  # after the clip: the stripe was decided from the same offset windows
-            line -= np.nan_to_num(_slope_along_carriers(line, window) * described)
-    line = np.where(np.isfinite(line), line, centres[k]).astype(np.float32)
-    line[~valid] = np.nan
-    return replace(decoded, proj_map=np.ascontiguousarray(along_carriers(line.swapaxes(0, 1), spec)))
+    low = np.concatenate([[2 * centres[0] - borders[0]], borders])  # each stripe's range of lines
+    high = np.concatenate([borders, [2 * centres[-1] - borders[-1]]])
+    over_rows(lambda rows: _assemble_rows(view(slope), view(anchor), view(line_at), view(near_slope), view(between),
+                                          view(weight), view(total), stripe, valid, low, high, rows, view(line)),
+              stripe.shape[0])
+    if offset is not None:  # after the clip: the stripe was decided from the same offset windows
+        along = along_carriers(line, spec)
+        with np.errstate(invalid="ignore"):
+            along -= np.nan_to_num(_slope_along_carriers(along, window) * along_carriers(described, spec))
+    missing = decoded.valid & np.isnan(line)  # no border in the run: the stripe's centre
+    line[missing] = centres[np.clip(decoded.stripe[missing], 0, spec.stripes - 1)]
+    return replace(decoded, proj_map=line)
+
+
+@numba.njit(cache=True, nogil=True)
+def _assemble_rows(slope: NDArray[np.float32], anchor: NDArray[np.float32], line_at: NDArray[np.float32],
+                   near_slope: NDArray[np.float32], between: NDArray[np.float32], weight: NDArray[np.float32],
+                   total: NDArray[np.float32], stripe: NDArray[np.int16], valid: NDArray[np.bool_],
+                   low: NDArray[np.float64], high: NDArray[np.float64], rows: NDArray[np.intp],
+                   out: NDArray[np.float32]) -> None:
+    """`interpolate_lines`' line of every valid pixel of the given `rows` (phase direction along
+    axis 1), into `out`: the cubic between two borders, else the line from the run's one border
+    with the slope of the two-border runs around it (`total` over `weight`) or else the run's
+    beyond it, clipped to the stripe's range (`low`, `high` per stripe); NaN where neither
+    exists."""
+    for r in rows:
+        for x in range(stripe.shape[1]):
+            if not valid[r, x]:
+                continue
+            k = min(max(stripe[r, x], 0), low.size - 1)
+            value = between[r, x]
+            if not np.isfinite(value):
+                s = slope[r, x]
+                if not np.isfinite(s):
+                    s = total[r, x] / weight[r, x] if weight[r, x] >= 1 else near_slope[r, x]
+                value = line_at[r, x] + s * (x - anchor[r, x])
+            if np.isfinite(value):
+                out[r, x] = min(max(value, low[k]), high[k])
 
 
 def _slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.float32]:
-    """Mean change of `line` ``(H, W)`` (carriers along axis 0) per pixel along the carriers
+    """Mean change of `line` ``(H, W)`` (carriers along axis 1) per pixel along the carriers
     over `window` pixels, from the central differences that stay on one surface (under
     `MAX_SLOPE` lines per pixel), where at least a quarter of them do; NaN elsewhere."""
+    line = np.ascontiguousarray(line)  # a transposed view for a columns pattern
     step = np.full(line.shape, np.nan, np.float32)
-    step[1:-1] = 0.5 * (line[2:] - line[:-2])
-    usable = np.isfinite(step) & (np.abs(step) < MAX_SLOPE)
-    size = (1, max(1, window) | 1)
-    total = cv2.boxFilter(np.where(usable, step, 0).astype(np.float32), -1, size, normalize=False,
+    step[:, 1:-1] = 0.5 * (line[:, 2:] - line[:, :-2])
+    with np.errstate(invalid="ignore"):
+        usable = np.abs(step) < MAX_SLOPE  # NaN compares false
+    size = (max(1, window) | 1, 1)
+    total = cv2.boxFilter(np.where(usable, step, np.float32(0)), -1, size, normalize=False,
                           borderType=cv2.BORDER_CONSTANT)
     count = cv2.boxFilter(usable.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count >= 0.25 * max(window, 1), total / count, np.nan).astype(np.float32)
+        return np.where(count >= 0.25 * max(window, 1), total / count, np.float32(np.nan)).astype(np.float32)
 
 
 def prefer_borders(refined: Decoded, border_line: NDArray[np.float32], spec: PatternSpec, *,
