@@ -51,7 +51,9 @@ class Decoded:
     stripe : (H, W) int16 array
         Stripe index, -1 where invalid.
     proj_map : (H, W) float32 array
-        Projector line at the stripe centre (projector pixels), NaN where invalid.
+        Projector line (projector pixels), NaN where invalid: the stripe's centre from `decode`;
+        between the stripe's borders after `sliscan.staircase.interpolate_lines`, the fringe's
+        after `sliscan.fringe.refine`.
     valid : (H, W) bool array
     lit : (H, W) bool array
         Pixels the projector's light was detected on.
