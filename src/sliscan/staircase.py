@@ -201,18 +201,14 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], level
             after = i < n - 1 and np.isfinite(position[i])
             if not (before or after):
                 continue
-            own, near, y0, l0 = np.nan, np.nan, 0.0, 0.0
-            if before and after and line[i] != line[i - 1]:
+            own, near = _secant(position, line, i - 1, n - 1), np.nan  # own: two borders of different lines
+            if np.isfinite(own) or before:
                 y0, l0 = position[i - 1], line[i - 1]
-                own = (line[i] - l0) / max(position[i] - y0, 1e-6)
-            elif before:
-                y0, l0 = position[i - 1], line[i - 1]
-                if i > 1 and np.isfinite(position[i - 2]) and line[i - 1] != line[i - 2]:
-                    near = (l0 - line[i - 2]) / max(y0 - position[i - 2], 1e-6)
+                if not np.isfinite(own):
+                    near = _secant(position, line, i - 2, n - 1)  # the run before the border
             else:
                 y0, l0 = position[i], line[i]
-                if i < n - 2 and np.isfinite(position[i + 1]) and line[i + 1] != line[i]:
-                    near = (line[i + 1] - l0) / max(position[i + 1] - y0, 1e-6)
+                near = _secant(position, line, i, n - 1)  # the run after it
             m0 = m1 = own
             if np.isfinite(own):
                 m0, m1 = _tangent(position, line, i - 1, n - 1), _tangent(position, line, i, n - 1)
