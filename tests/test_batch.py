@@ -19,7 +19,7 @@ import pytest
 from sliscan import batch, motion, patterns, simulate
 from sliscan._validate import write_image
 from sliscan.formats import npz
-from sliscan.pipeline import Scanner
+from sliscan.pipeline import ScanChoices, Scanner
 from sliscan.types import Calibration, PatternSpec
 from test_cli import CAMERA, PROJECTOR, listing, ok, sliscan
 
@@ -260,19 +260,22 @@ def test_scan_frame_never_raises_and_reuses_its_scanner(take: Path) -> None:
     assert wrong.status == "failed" and "640" in wrong.error
 
 
-def test_job_decisions_shape_its_scanner(take: Path) -> None:
-    """A job's decisions and albedo steps reach the worker's scanner (and its token), so a batch decodes as
-    `sliscan scan` does."""
+def test_job_choices_shape_its_scanner(take: Path) -> None:
+    """A job's decisions, albedo steps and stripe lines reach the worker's scanner (and its token), so a batch
+    decodes as `sliscan scan` does."""
     spec, calibration = PatternSpec.load(take / "cp.json"), Calibration.load(take / "rig.json")
-    jobs = {d: batch.Job.create(spec, calibration, decisions=d) for d in ("auto", "order", "pixel")}
+    jobs = {d: batch.Job.create(spec, calibration, choices=ScanChoices(decisions=d))
+            for d in ("auto", "order", "pixel")}
     assert len({job.token for job in jobs.values()}) == 3
     assert [jobs[d].scanner().decode_options for d in ("auto", "order", "pixel")] == [{}, {"order": True},
                                                                                       {"order": False}]
     with pytest.raises(Exception, match="decisions must be one of"):
-        batch.Job.create(spec, calibration, decisions="majority")
-    plain = batch.Job.create(spec, calibration, albedo_steps=False)
-    assert plain.token != jobs["auto"].token
+        batch.Job.create(spec, calibration, choices=ScanChoices(decisions="majority"))
+    plain = batch.Job.create(spec, calibration, choices=ScanChoices(albedo_steps=False))
+    centres = batch.Job.create(spec, calibration, choices=ScanChoices(stripe_lines=False))
+    assert len({plain.token, centres.token, jobs["auto"].token}) == 3
     assert (plain.scanner().albedo, jobs["auto"].scanner().albedo) == (None, "steps")
+    assert (centres.scanner().interpolate_stripes, jobs["auto"].scanner().interpolate_stripes) == (False, True)
 
 
 def test_batch_report_lists_every_frame(take: Path) -> None:

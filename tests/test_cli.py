@@ -203,6 +203,30 @@ def test_scan_without_albedo_steps_is_the_scanner_without_them(plane: tuple[Path
     np.testing.assert_array_equal(from_cli.confidence, plain.confidence)
 
 
+def test_scan_stripe_centres_are_the_staircase_the_stripe_lines_remove(plane: tuple[Path, str],
+                                                                        tmp_path: Path) -> None:
+    """--stripe-centres reaches the scanner (``Scanner(interpolate_stripes=False)``): one line per
+    stripe, its centre, so on the plane the median line error is a quarter of a stripe (uniform
+    within each stripe); the default lines between the located borders are within a line."""
+    folder, _ = plane
+    for flag in ("--stripe-centres", "--stripe-lines"):
+        ok("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+           flag, "--npz", f"{flag[2:]}.npz", cwd=tmp_path)
+    centres, lines = (npz.read_scan_npz(tmp_path / name) for name in ("stripe-centres.npz", "stripe-lines.npz"))
+    spec, calibration = PatternSpec.load(folder / "cp.json"), Calibration.load(folder / "rig.json")
+    expected = Scanner(spec, calibration, interpolate_stripes=False).scan(read_image(folder / "capture.png"))
+    np.testing.assert_array_equal(centres.proj_map, expected.proj_map)
+    valid = centres.valid
+    stripes = np.unique(centres.stripe[valid])
+    assert all(np.unique(centres.proj_map[valid & (centres.stripe == k)]).size == 1 for k in stripes)
+    with np.load(folder / "truth.npz") as truth:
+        true_line = truth["proj"][..., 1]
+    stripe_lines = spec.projector_size[1] / 2 ** spec.bits
+    centre_error = np.median(np.abs(centres.proj_map - true_line)[valid])
+    assert 0.2 * stripe_lines < centre_error < 0.3 * stripe_lines, centre_error
+    assert np.median(np.abs(lines.proj_map - true_line)[lines.valid]) < 1.0
+
+
 @pytest.mark.parametrize("method", ["svd", "lstsq"])
 def test_calibrate_recovers_the_rig(tmp_path: Path, method: str) -> None:
     rig = simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR)

@@ -33,7 +33,7 @@ from typing import Any
 from sliscan._validate import InputError, atomic_path, atomic_paths, decode_image
 from sliscan._threads import THREADS_ENV, available_cpus
 from sliscan.formats import mat5
-from sliscan.pipeline import Scanner, scanner_options
+from sliscan.pipeline import ScanChoices, Scanner
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
 
 #: File name endings read as videos (everything else is read as an image file).
@@ -205,8 +205,7 @@ class Job:
     calibration: dict[str, Any]
     method: str = "window"
     formats: tuple[str, ...] = ("npz",)
-    decisions: str = "auto"
-    albedo_steps: bool = True
+    choices: ScanChoices = ScanChoices()
 
     def __post_init__(self) -> None:
         unknown = [f for f in self.formats if f not in FORMATS]
@@ -217,18 +216,15 @@ class Job:
 
     @classmethod
     def create(cls, spec: PatternSpec, calibration: Calibration, *, method: str = "window",
-               formats: Sequence[str] = ("npz",), decisions: str = "auto",
-               albedo_steps: bool = True) -> Job:
-        """A job for `spec` on `calibration` (checked by building a `Scanner` here first);
-        `decisions` and `albedo_steps` as `sliscan.pipeline.scanner_options`."""
-        Scanner(spec, calibration, method=method, **scanner_options(spec, decisions, albedo_steps))
-        return cls(spec.to_dict(), calibration.to_dict(), method, tuple(dict.fromkeys(formats)), decisions,
-                   albedo_steps)
+               formats: Sequence[str] = ("npz",), choices: ScanChoices = ScanChoices()) -> Job:
+        """A job for `spec` on `calibration` (checked by building a `Scanner` here first)."""
+        Scanner(spec, calibration, method=method, **choices.scanner_options(spec))
+        return cls(spec.to_dict(), calibration.to_dict(), method, tuple(dict.fromkeys(formats)), choices)
 
     @property
     def token(self) -> str:
         """A digest of everything that shapes the scanner."""
-        text = json.dumps([self.spec, self.calibration, self.method, self.decisions, self.albedo_steps],
+        text = json.dumps([self.spec, self.calibration, self.method, asdict(self.choices)],
                           sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -236,7 +232,7 @@ class Job:
         """A new `Scanner` for this job."""
         spec = PatternSpec.from_dict(self.spec)
         return Scanner(spec, Calibration.from_dict(self.calibration), method=self.method,
-                       **scanner_options(spec, self.decisions, self.albedo_steps))
+                       **self.choices.scanner_options(spec))
 
 
 def output_names(index: int, formats: Sequence[str]) -> list[str]:
@@ -508,8 +504,8 @@ def run_batch(client: Any, job: Job, frames: Iterable[Frame], out: Path, *, resu
             record(result.row())
             submit_next()
     finally:
-        write_summary(out, rows, meta={"job": {"method": job.method, "decisions": job.decisions,
-                                                   "albedo_steps": job.albedo_steps, "formats": list(job.formats)}})
+        write_summary(out, rows, meta={"job": {"method": job.method, **asdict(job.choices),
+                                                   "formats": list(job.formats)}})
     return BatchReport(rows, time.perf_counter() - t0)
 
 

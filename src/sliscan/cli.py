@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import glob
 import os
 import sys
@@ -43,7 +44,7 @@ from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
-from sliscan.pipeline import DECISIONS, METHODS, Scanner, ScanStages, scanner_options
+from sliscan.pipeline import DECISIONS, METHODS, ScanChoices, Scanner, ScanStages
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
@@ -154,16 +155,29 @@ def _projector_option(**kwargs: Any) -> Callable[[Callable], Callable]:
 _overwrite_option = click.option("--overwrite", is_flag=True,
                                  help="Replace output files that exist (else an existing output is an error).")
 
-_decisions_option = click.option(
-    "--decisions", type=click.Choice(list(DECISIONS)), default="auto", show_default=True,
-    help="Single-shot patterns: decide the stripes down each column by the order they come in (order; "
-         "more complete, 2-3x slower to decode), each pixel from its own bits (pixel; faster), or auto "
-         "(order; the baseband method decides per pixel).")
+def _scan_choices_options(command: Callable) -> Callable:
+    """``--decisions``, ``--albedo-steps/--no-albedo-steps`` and ``--stripe-lines/--stripe-centres``,
+    handed to `command` as one ``choices`` `ScanChoices` argument."""
 
-_albedo_steps_option = click.option(
-    "--albedo-steps/--no-albedo-steps", default=True, show_default=True,
-    help="Window and baseband demodulators: divide the capture by its sharp reflectance steps first (for "
-         "textured surfaces; baseband: and by its flat field), or not (faster).")
+    @functools.wraps(command)
+    def with_choices(*args: Any, decisions: str, albedo_steps: bool, stripe_lines: bool, **kwargs: Any) -> Any:
+        return command(*args, choices=ScanChoices(decisions, albedo_steps, stripe_lines), **kwargs)
+
+    return _options(
+        click.option("--decisions", type=click.Choice(list(DECISIONS)), default="auto", show_default=True,
+                     help="Single-shot patterns: decide the stripes down each column by the order they come in "
+                          "(order; more complete, 2-3x slower to decode), each pixel from its own bits (pixel; "
+                          "faster), or auto (order; the baseband method decides per pixel)."),
+        click.option("--albedo-steps/--no-albedo-steps", default=True, show_default=True,
+                     help="Window and baseband demodulators: divide the capture by its sharp reflectance steps "
+                          "first (for textured surfaces; baseband: and by its flat field), or not (faster)."),
+        click.option("--stripe-lines/--stripe-centres", default=True, show_default=True,
+                     help="Window and band-pass demodulators: place each pixel's projector line between its "
+                          "stripe's located borders (no staircase; with a phase channel, where the two agree), "
+                          "or at its stripe's centre (the thesis's staircase; with a phase channel, the phase's "
+                          "lines)."),
+    )(with_choices)
+
 
 _calibration_options = _options(
     click.option("--calibration", type=INPUT_FILE, help="Calibration JSON (DESIGN.md format)."),
@@ -925,7 +939,7 @@ class _ScanInputs:
 
 
 def _scan_inputs(files: list[Path], pattern_path: Path, calibration: Path | None, camera_matrix: Path | None,
-                 projector_matrix: Path | None, *, method: str, decisions: str = "auto", albedo_steps: bool = True,
+                 projector_matrix: Path | None, *, method: str, choices: ScanChoices = ScanChoices(),
                  spec: PatternSpec | None = None) -> _ScanInputs:
     """Read and check what `sliscan scan` and `sliscan report` scan: the pattern (`spec` if
     already read), the frames (one for a composite pattern), the calibration (its camera of the
@@ -934,7 +948,7 @@ def _scan_inputs(files: list[Path], pattern_path: Path, calibration: Path | None
     if spec.kind not in MULTI_FRAME_KINDS and len(files) != 1:
         raise InputError(f"{pattern_path}: a {spec.kind} pattern takes one capture, got {len(files)}")
     with _about(pattern_path):
-        options = scanner_options(spec, decisions, albedo_steps)
+        options = choices.scanner_options(spec)
     frames = _read_frames(files)
     capture = str(files[0]) if len(files) == 1 else f"{files[0]} .. {files[-1]}"
     h, w = frames[0].shape
@@ -1006,7 +1020,7 @@ def _frames_progress(total: int) -> Iterator[Callable[[dict[str, Any]], None]]:
 
 
 def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, calibration: CalibrationArgs, *,
-                method: str, decisions: str, albedo_steps: bool, out: Path | None, formats: Sequence[str],
+                method: str, choices: ScanChoices, out: Path | None, formats: Sequence[str],
                 workers: int | None,
                 scheduler: str | None, resume: bool, report: Path | None, overwrite: bool) -> int:
     """`sliscan scan` of a batch of single-shot frames (`sliscan.batch`), with its HTML `report`
@@ -1029,8 +1043,7 @@ def _scan_batch(files: Sequence[Path], spec: PatternSpec, pattern_path: Path, ca
     calib, source = _scan_calibration(spec, pattern_path, calibration, batch.first_frame_size(files)
                                       if calibration[0] is None else None, files[0])
     with _about(source):
-        job = batch.Job.create(spec, calib, method=method, formats=formats, decisions=decisions,
-                               albedo_steps=albedo_steps)
+        job = batch.Job.create(spec, calib, method=method, formats=formats, choices=choices)
     total = batch.count_frames(files)
     skip = (lambda index: batch.outputs_exist(out, index, job.formats)) if resume else (lambda index: False)
     with _frames_progress(total) as done, batch.dask_client(workers=workers, scheduler=scheduler) as client:
@@ -1095,8 +1108,7 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
 @click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
               help="Demodulator: sliscan's sliding window, the thesis's Butterworth band-pass (3.4), or baseband: "
                    "the real-time path (decimated envelopes, per-pixel decisions; stripe patterns only).")
-@_decisions_option
-@_albedo_steps_option
+@_scan_choices_options
 @click.option("--timings", is_flag=True, help="Also print the milliseconds of every stage, one per line.")
 @click.option("--report", type=OUTPUT_FILE,
               help="Also write an HTML report of every stage with a 3D view (needs sliscan[report]; see sliscan report); "
@@ -1114,7 +1126,7 @@ Batches of single-shot frames (one output per frame, named by frame index, and a
 @_overwrite_option
 def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None, camera_matrix: Path | None,
          projector_matrix: Path | None, mat5_prefix: Path | None, ply: Path | None, npz: Path | None,
-         method: str, decisions: str, albedo_steps: bool, timings: bool, report: Path | None,
+         method: str, choices: ScanChoices, timings: bool, report: Path | None,
          out_dir: Path | None, formats: tuple[str, ...], workers: int | None, scheduler: str | None, resume: bool,
          overwrite: bool) -> int:
     """Reconstruct 3D points from a camera capture: one image of a composite pattern, or the
@@ -1144,7 +1156,7 @@ def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Pat
             raise click.UsageError("a batch writes into --out DIR in the --format(s) asked for; "
                                    "--mat5, --ply, --npz and --timings are for one capture")
         return _scan_batch(files, spec, pattern_path, (calibration, camera_matrix, projector_matrix),
-                           method=method, decisions=decisions, albedo_steps=albedo_steps, out=out_dir,
+                           method=method, choices=choices, out=out_dir,
                            formats=formats or ("npz",),
                            workers=workers, scheduler=scheduler, resume=resume, report=report, overwrite=overwrite)
     if batch_options:
@@ -1158,7 +1170,7 @@ def scan(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Pat
         stage("read")
         t0 = time.perf_counter()
         inputs = _scan_inputs(files, pattern_path, calibration, camera_matrix, projector_matrix, method=method,
-                              decisions=decisions, albedo_steps=albedo_steps, spec=spec)
+                              choices=choices, spec=spec)
         frames, capture, scanner = inputs.frames, inputs.capture, inputs.scanner
         h, w = frames[0].shape
         stage("scan")
@@ -1688,8 +1700,7 @@ browser (needs sliscan[report]).""")
 @click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
               help="Demodulator: sliscan's sliding window, the thesis's Butterworth band-pass (3.4), or baseband: "
                    "the real-time path (decimated envelopes, per-pixel decisions; stripe patterns only).")
-@_decisions_option
-@_albedo_steps_option
+@_scan_choices_options
 @click.option("--truth", type=INPUT_FILE,
               help="Ground truth of a simulated capture (sliscan simulate --truth): adds the error against it.")
 @click.option("--residuals", type=INPUT_FILE,
@@ -1705,7 +1716,7 @@ browser (needs sliscan[report]).""")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True, help="HTML file to write.")
 @_overwrite_option
 def report(captures: tuple[Path, ...], pattern_path: Path | None, calibration: Path | None,
-           camera_matrix: Path | None, projector_matrix: Path | None, method: str, decisions: str, albedo_steps: bool,
+           camera_matrix: Path | None, projector_matrix: Path | None, method: str, choices: ScanChoices,
            truth: Path | None,
            residuals: Path | None, g_file: Path | None, pixels: bool, batch_summary: Path | None, max_points: int,
            output: Path, overwrite: bool) -> None:
@@ -1750,7 +1761,7 @@ def report(captures: tuple[Path, ...], pattern_path: Path | None, calibration: P
     with _progress(3) as stage:
         stage("read")
         inputs = _scan_inputs(files, pattern_path, calibration, camera_matrix, projector_matrix, method=method,
-                              decisions=decisions, albedo_steps=albedo_steps)
+                              choices=choices)
         ground = None if truth is None else evaluate.read_truth(truth, shape=inputs.frames[0].shape)
         t1 = time.perf_counter()
         stage("scan")

@@ -27,12 +27,12 @@ from sliscan import acquire, devices, motion, patterns, sequences, simulate
 from sliscan._validate import InputError, write_image
 from sliscan.acquire import RECORD_NAME, Session, capture_paths, write_record
 from sliscan.calibrate import MIN_BOARD_VIEWS
-from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCENES, SIZE, _albedo_steps_option, _board,
-                         _board_options, _check_outputs, _check_projector, _conditions, _decisions_option, _options,
-                         _overwrite_option, _progress, _run_calibrate_board, _run_calibrate_target, _sequence_spec,
+from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCENES, SIZE, _board,
+                         _board_options, _check_outputs, _check_projector, _conditions, _options, _overwrite_option,
+                         _progress, _run_calibrate_board, _run_calibrate_target, _scan_choices_options, _sequence_spec,
                          cli)
 from sliscan.formats.calibration import load_calibration
-from sliscan.pipeline import METHODS, Scanner, scanner_options
+from sliscan.pipeline import METHODS, ScanChoices, Scanner
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, PatternSpec
 
@@ -466,8 +466,7 @@ Examples:
 @_device_options
 @click.option("--method", type=click.Choice(list(METHODS)), default="window", show_default=True,
               help="Demodulator (as sliscan scan; baseband: the real-time path, carriers of the first frame kept).")
-@_decisions_option
-@_albedo_steps_option
+@_scan_choices_options
 @click.option("--frames", type=click.IntRange(min=1), help="Stop after this many frames.")
 @click.option("--seconds", type=POSITIVE, help="Stop after this many seconds.")
 @click.option("--record", type=click.Path(file_okay=False, path_type=Path),
@@ -481,8 +480,8 @@ Examples:
 @_virtual_options
 @_overwrite_option
 def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str, resolution: tuple[int, int] | None,
-             exposure: float | None, gain: float | None, settle_s: float, method: str, decisions: str,
-             albedo_steps: bool, frames: int | None, seconds: float | None, record: Path | None, window: bool,
+             exposure: float | None, gain: float | None, settle_s: float, method: str, choices: ScanChoices,
+             frames: int | None, seconds: float | None, record: Path | None, window: bool,
              motion_frames: int | None, velocity: tuple[float, ...], spin: float, overwrite: bool,
              **virtual_args: Any) -> None:
     """Scan continuously: project one single-shot pattern, then scan every camera frame.
@@ -519,7 +518,7 @@ def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str,
             (w, h), (cw, ch) = devs.camera.size, calib.camera.size
             raise InputError(f"camera {camera_id} gives {w}x{h} frames but the camera of {calibration} is {cw}x{ch}")
         # the real-time path keeps the first frame's carriers (the search costs 57 ms at 5 MP)
-        scanner = Scanner(spec, calib, method=method, **scanner_options(spec, decisions, albedo_steps),
+        scanner = Scanner(spec, calib, method=method, **choices.scanner_options(spec),
                           reuse_carriers=method == "baseband")
         started = datetime.now(timezone.utc).isoformat(timespec="seconds")
         preview = devices.PreviewWindow(devs.camera.size) if window else None

@@ -153,20 +153,40 @@ def decision_options(spec: PatternSpec, decisions: str) -> dict[str, Any]:
     return dict(DECISIONS[decisions])
 
 
-def scanner_options(spec: PatternSpec, decisions: str = "auto", albedo_steps: bool = True) -> dict[str, Any]:
-    """`Scanner` keyword arguments for the command line's choices: `decisions` one of
-    `DECISIONS` (`decision_options`); `albedo_steps` whether the window and baseband
-    demodulators divide the capture by its sharp reflectance steps first (``Scanner.albedo``
-    ``"steps"``, the default) or by nothing (None: the faster scan for surfaces without sharp
-    texture, README "Speed"; the band-pass demodulator and multi-frame patterns divide by
-    nothing either way).
+@dataclass(frozen=True)
+class ScanChoices:
+    """How the command line scans a single-shot frame (`sliscan scan`, `sliscan report`,
+    `sliscan live` and the batch `sliscan.batch.Job`).
 
-    Raises
-    ------
-    InputError
-        For an unknown or inapplicable `decisions`.
+    Attributes
+    ----------
+    decisions : str
+        One of `DECISIONS` (`decision_options`).
+    albedo_steps : bool
+        Whether the window and baseband demodulators divide the capture by its sharp
+        reflectance steps first (``Scanner.albedo`` ``"steps"``, the default) or by nothing
+        (None: the faster scan for surfaces without sharp texture, README "Speed"; the band-pass
+        demodulator and multi-frame patterns divide by nothing either way).
+    stripe_lines : bool
+        Whether each pixel's projector line is interpolated between its stripe's located borders
+        (``Scanner.interpolate_stripes``, the default: no staircase) or is its stripe's centre
+        (the thesis's output).
     """
-    return dict(decode_options=decision_options(spec, decisions), albedo="steps" if albedo_steps else None)
+
+    decisions: str = "auto"
+    albedo_steps: bool = True
+    stripe_lines: bool = True
+
+    def scanner_options(self, spec: PatternSpec) -> dict[str, Any]:
+        """`Scanner` keyword arguments of these choices for `spec`.
+
+        Raises
+        ------
+        InputError
+            For an unknown or inapplicable `decisions`.
+        """
+        return dict(decode_options=decision_options(spec, self.decisions),
+                    albedo="steps" if self.albedo_steps else None, interpolate_stripes=self.stripe_lines)
 
 
 @dataclass(frozen=True, eq=False)
