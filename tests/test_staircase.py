@@ -7,7 +7,7 @@ import pytest
 
 from sliscan import patterns, simulate
 from sliscan.decode import Decoded
-from sliscan.evaluate import accuracy
+from sliscan.evaluate import accuracy, true_proj_line
 from sliscan.patterns import code_bits, stripe_codes, stripe_of_line
 from sliscan.pipeline import Scanner
 from sliscan.staircase import border_lines, flipping_planes, interpolate_lines, prefer_borders
@@ -62,6 +62,30 @@ def test_lines_between_two_borders_follow_a_linear_projection_exactly():
     assert np.abs(out.proj_map[outer] - line[outer]).max() < 0.05
     # the stripe centres the interpolation replaces are up to half a stripe off
     assert np.abs(patterns.stripe_center(stripe, spec) - line).max() > 20
+
+
+def test_an_undecided_pixel_at_a_border_takes_the_side_its_centre_lies_on():
+    """A lit pixel left undecided alone between two runs of neighbouring stripes gets the stripe
+    of the located border's side it lies on and its line there; a two-pixel gap (more than
+    `FILL_GAP`) and an unlit pixel stay out."""
+    spec = patterns.thesis_spec((1024, 768))
+    rows, cols = np.mgrid[0:400, 0:3]
+    line = (20.0 + 1.7 * rows).astype(np.float64)  # no pixel centre on a border
+    decoded = _synthetic(line, spec)
+    borders = border_lines(spec)
+    # the pixel after the first border in column 0, the one before the second in column 1, two in column 2
+    after = int(np.ceil((borders[0] - 20.0) / 1.7))
+    before = int(np.floor((borders[1] - 20.0) / 1.7))
+    undecided = np.zeros(line.shape, bool)
+    undecided[after, 0] = undecided[before, 1] = undecided[after:after + 2, 2] = True
+    valid = decoded.valid & ~undecided
+    gappy = replace(decoded, valid=valid, stripe=np.where(valid, decoded.stripe, -1).astype(np.int16))
+    out = interpolate_lines(gappy, spec, stripe_px=48 / 1.7)
+    assert out.valid[after, 0] and out.valid[before, 1] and not out.valid[after:after + 2, 2].any()
+    assert (out.stripe[after, 0], out.stripe[before, 1]) == (1, 1)  # after border 0 / before border 1: stripe 1
+    np.testing.assert_allclose(out.proj_map[[after, before], [0, 1]], line[[after, before], [0, 1]], atol=0.02)
+    unlit = interpolate_lines(replace(gappy, lit=valid), spec, stripe_px=48 / 1.7)
+    np.testing.assert_array_equal(unlit.valid, valid)
 
 
 def test_a_columns_pattern_is_interpolated_along_the_camera_rows():
@@ -147,8 +171,12 @@ def test_the_border_interpolated_line_is_taken_where_it_agrees_with_the_phase():
 def test_interpolated_stripes_remove_the_staircase_on_a_realistic_plane(name):
     """A tilted plane at 640x480 (realistic conditions, smooth albedo, seed 1): with the stripe
     centres the median error is the staircase's, ~24 mm (the oracle's); interpolated between
-    the borders measured 0.41 mm (default pattern) / 0.50 mm (thesis pattern); bound 1.5 mm,
-    a sixteenth of the staircase.  Stripes and completeness are the same."""
+    the borders measured 0.37 mm (default pattern) / 0.48 mm (thesis pattern); bound 1.5 mm,
+    a sixteenth of the staircase.  The decoded stripes stay; the pixels left undecided in
+    one-pixel gaps at a border become valid (measured +0.45 points of completeness on either
+    pattern), with the stripe of the side they lie on (never more than one off the truth) and
+    the line there (median error measured 0.19 / 0.26 projector lines; bound 1 line: the
+    border is located to a fraction of a pixel, and a stripe is 48 lines)."""
     rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768))
     spec = patterns.default_spec((1024, 768)) if name == "default" else patterns.thesis_spec((1024, 768))
     capture = simulate.render(rig, simulate.tilted_plane_scene(), patterns.render_pattern(spec),
@@ -159,5 +187,10 @@ def test_interpolated_stripes_remove_the_staircase_on_a_realistic_plane(name):
     after = accuracy(lines, capture.truth, spec, rig.calibration)
     assert before.median_mm == pytest.approx(before.oracle_median_mm, rel=0.1)
     assert after.median_mm < 1.5
-    assert after.completeness == pytest.approx(before.completeness, abs=0.002)
-    np.testing.assert_array_equal(lines.stripe[lines.valid & centres.valid], centres.stripe[lines.valid & centres.valid])
+    assert before.completeness < after.completeness < before.completeness + 0.01
+    assert not (centres.valid & ~lines.valid).any()
+    np.testing.assert_array_equal(lines.stripe[centres.valid], centres.stripe[centres.valid])
+    filled = lines.valid & ~centres.valid
+    true_line = true_proj_line(capture.truth, spec)
+    assert np.abs(lines.stripe[filled] - stripe_of_line(true_line[filled], spec)).max() <= 1
+    assert np.median(np.abs(lines.proj_map - true_line)[filled]) < 1.0

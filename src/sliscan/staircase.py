@@ -13,6 +13,9 @@ runs of neighbouring stripes meet (across at most `MAX_GAP` of a stripe of undec
 it places the border where the level of the one bit that flips between them crosses the
 midpoint of its two sides' levels (linearly between pixels; the levels' gain varies with the
 light, so the midpoint comes from the pixels near the border, past the blurred ones, not 0.5).
+A lit pixel the decoder left undecided in a one-pixel gap between the two runs (its flipping
+bit near half way, no margin to decide) takes the stripe of the border's side its centre lies
+on.
 Each run's pixels then get the line of a monotone cubic through the borders along the line
 (Fritsch-Carlson, as scipy's PCHIP: it follows a surface's curvature, which a straight line
 between two borders would cut); a run with one border (at a depth or shadow edge, or the
@@ -20,7 +23,7 @@ frame's end) is extended from it with the mean slope of the two-border runs arou
 with none keeps its stripe's centre.  Where a border crosses the carriers' lines obliquely, a
 demodulation window off the pixel's centre (`Demodulated.offset`) sees the border where it lies
 at that window's centre: each line is moved back by its slope along the carriers times that
-offset.  Every line is first clipped to its stripe's range (the decoded stripe is never
+offset.  Every line is first clipped to its stripe's range (a decoded stripe is never
 changed; only that move may take a line a little past its stripe's border).
 
 With a phase channel the interpolated line replaces the phase's where the two agree
@@ -61,6 +64,10 @@ BORDER_AGREEMENT = 2.0
 #: where the border falls off a pixel's centre); a shorter run gives what it has.
 SIDE = 5
 SKIP = 3
+#: A lit pixel left undecided between two runs of neighbouring stripes, in a gap of at most this
+#: many pixels, gets the stripe of the side of the located border its centre lies on (the
+#: flipping bit sits near half way there, so the decoder had no margin to decide it).
+FILL_GAP = 1
 
 
 def border_lines(spec: PatternSpec) -> NDArray[np.float64]:
@@ -150,22 +157,26 @@ def _tangent(position: NDArray[np.float64], line: NDArray[np.float64], j: int, c
 
 
 @numba.njit(cache=True, nogil=True)
-def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], levels: NDArray[np.float32],
-                      planes: NDArray[np.intp], borders: NDArray[np.float64], max_gap: int, rows: NDArray[np.intp],
+def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], lit: NDArray[np.bool_],
+                      levels: NDArray[np.float32], planes: NDArray[np.intp], borders: NDArray[np.float64],
+                      max_gap: int, rows: NDArray[np.intp],
                       slope: NDArray[np.float32], anchor: NDArray[np.float32], line_at: NDArray[np.float32],
                       near_slope: NDArray[np.float32], between: NDArray[np.float32], offset: NDArray[np.float32],
-                      described: NDArray[np.float32]) -> None:
+                      described: NDArray[np.float32], side: NDArray[np.int16]) -> None:
     """The borders along the given `rows` (phase direction along axis 1), into the ``(H, W)``
     outputs (NaN elsewhere): for the valid pixels of a run between two borders of different
     lines the line's `slope` (lines per pixel), one border (`anchor`, its position; `line_at`,
     its line) and the cubic between the two (`between`); for a run with one border that
-    border, and the slope of the run beyond it (`near_slope`) if that one has two.  With
+    border, and the slope of the run beyond it (`near_slope`) if that one has two; the stripe
+    of every pixel given a line (`side`, int16, -1 elsewhere), which takes in the `lit`
+    pixels left undecided in a gap of at most `FILL_GAP` between two runs, on the side of the
+    border their centre lies on.  With
     `offset` ``(H, W)`` (`Demodulated.offset`, framed likewise; ``(1, 1)``: none), `described`:
     where along the carriers the levels that placed the run's borders were measured, relative
     to the pixel (interpolated between its two borders)."""
     width = stripe.shape[1]
     first, last = np.empty(width, np.intp), np.empty(width, np.intp)
-    label = np.empty(width, np.intp)
+    label, own_first, own_last = np.empty(width, np.intp), np.empty(width, np.intp), np.empty(width, np.intp)
     position, line, moved = np.empty(width), np.empty(width), np.zeros(width)
     offsets = offset.shape[0] > 1
     for r in rows:
@@ -196,6 +207,11 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], level
                 j = min(int(position[i]), width - 2)
                 f = position[i] - j
                 moved[i] = (1 - f) * offset[r, j] + f * offset[r, j + 1]
+        own_first[:n], own_last[:n] = first[:n], last[:n]  # the runs' own pixels, as decoded
+        for i in range(n - 1):  # the pixels between two runs: to the side of the border they lie on
+            if np.isfinite(position[i]):
+                last[i] = min(max(int(np.floor(position[i])), last[i]), first[i + 1] - 1)
+                first[i + 1] = last[i] + 1
         for i in range(n):
             before = i > 0 and np.isfinite(position[i - 1])
             after = i < n - 1 and np.isfinite(position[i])
@@ -213,7 +229,9 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], level
             if np.isfinite(own):
                 m0, m1 = _tangent(position, line, i - 1, n - 1), _tangent(position, line, i, n - 1)
             for x in range(first[i], last[i] + 1):
-                if valid[r, x]:
+                if valid[r, x] or lit[r, x] and (x < own_first[i] and own_first[i] - own_last[i - 1] - 1 <= FILL_GAP
+                                                 or x > own_last[i] and own_first[i + 1] - own_last[i] - 1 <= FILL_GAP):
+                    side[r, x] = label[i]
                     slope[r, x], anchor[r, x], line_at[r, x], near_slope[r, x] = own, y0, l0, near
                     if np.isfinite(own):  # cubic Hermite between the two borders
                         h = max(position[i] - y0, 1e-6)
@@ -231,8 +249,10 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], level
 def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
                       offset: NDArray[np.float32] | None = None, window: int = 1) -> Decoded:
     """`decoded` with each valid pixel's projector line interpolated between the stripe borders
-    around it instead of its stripe's centre (see the module's docstring); stripes and
-    validity unchanged.
+    around it instead of its stripe's centre (see the module's docstring); the decoded stripes
+    unchanged, and the lit pixels the decoder left undecided between two runs of neighbouring
+    stripes (gaps of at most `FILL_GAP` pixels) valid, with the stripe of the border's side
+    they lie on.
 
     Parameters
     ----------
@@ -257,13 +277,18 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
     shape = decoded.stripe.shape
     slope, anchor, line_at, near_slope, between, described, line = (np.full(shape, np.nan, np.float32)
                                                                      for _ in range(7))
+    side = np.full(shape, -1, np.int16)
     moved = np.zeros((1, 1), np.float32) if offset is None else view(np.asarray(offset, np.float32))
     stripe, valid = view(decoded.stripe), view(decoded.valid)
     planes, borders = flipping_planes(spec), border_lines(spec)
     max_gap = max(1, int(round(MAX_GAP * stripe_px)))
-    over_rows(lambda rows: _interpolate_rows(stripe, valid, view(decoded.levels), planes, borders, max_gap, rows,
-                                             view(slope), view(anchor), view(line_at), view(near_slope),
-                                             view(between), moved, view(described)), stripe.shape[0])
+    lit = view(decoded.lit)
+    over_rows(lambda rows: _interpolate_rows(stripe, valid, lit, view(decoded.levels), planes, borders, max_gap,
+                                             rows, view(slope), view(anchor), view(line_at), view(near_slope),
+                                             view(between), moved, view(described), view(side)), stripe.shape[0])
+    new_stripe = np.where(side >= 0, side, decoded.stripe).astype(np.int16)
+    new_valid = decoded.valid | (side >= 0)
+    stripe, valid = view(new_stripe), view(new_valid)
     # a run with one border takes the mean slope of the two-border runs around it
     known = np.isfinite(slope)
     reach = max(1, int(round(SLOPE_REACH * stripe_px)))
@@ -281,9 +306,9 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
         along = along_carriers(line, spec)
         with np.errstate(invalid="ignore"):
             along -= np.nan_to_num(_slope_along_carriers(along, window) * along_carriers(described, spec))
-    missing = decoded.valid & np.isnan(line)  # no border in the run: the stripe's centre
-    line[missing] = centres[np.clip(decoded.stripe[missing], 0, spec.stripes - 1)]
-    return replace(decoded, proj_map=line)
+    missing = new_valid & np.isnan(line)  # no border in the run: the stripe's centre
+    line[missing] = centres[np.clip(new_stripe[missing], 0, spec.stripes - 1)]
+    return replace(decoded, proj_map=line, stripe=new_stripe, valid=new_valid)
 
 
 @numba.njit(cache=True, nogil=True)
