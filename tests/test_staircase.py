@@ -171,11 +171,11 @@ def test_the_border_interpolated_line_is_taken_where_it_agrees_with_the_phase():
 def test_interpolated_stripes_remove_the_staircase_on_a_realistic_plane(name):
     """A tilted plane at 640x480 (realistic conditions, smooth albedo, seed 1): with the stripe
     centres the median error is the staircase's, ~24 mm (the oracle's); interpolated between
-    the borders measured 0.37 mm (default pattern) / 0.48 mm (thesis pattern); bound 1.5 mm,
+    the borders measured 0.34 mm (default pattern) / 0.45 mm (thesis pattern); bound 1.5 mm,
     a sixteenth of the staircase.  The decoded stripes stay; the pixels left undecided in
     one-pixel gaps at a border become valid (measured +0.45 points of completeness on either
     pattern), with the stripe of the side they lie on (never more than one off the truth) and
-    the line there (median error measured 0.19 / 0.26 projector lines; bound 1 line: the
+    the line there (median error measured 0.18 / 0.25 projector lines; bound 1 line: the
     border is located to a fraction of a pixel, and a stripe is 48 lines)."""
     rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768))
     spec = patterns.default_spec((1024, 768)) if name == "default" else patterns.thesis_spec((1024, 768))

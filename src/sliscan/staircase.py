@@ -61,9 +61,14 @@ MAX_SLOPE = 2.0
 BORDER_AGREEMENT = 2.0
 #: The levels either side of a border are averaged over at most `SIDE` pixels of each run,
 #: leaving out the `SKIP` next to the border (blur mixes the two sides' levels there, unevenly
-#: where the border falls off a pixel's centre); a shorter run gives what it has.
+#: where the border falls off a pixel's centre, and a demodulation window smears a border that
+#: crosses the carriers obliquely over several pixels); a shorter run gives what it has.  The
+#: flipping bit's level stays the same across the run (its other border flips another bit).
 SIDE = 5
-SKIP = 3
+SKIP = 8
+#: The crossing is looked for this many pixels into each run as well as in the gap between them:
+#: where the decoder's transition lies a pixel off the level's midpoint.
+CROSSING_REACH = 1
 #: A lit pixel left undecided between two runs of neighbouring stripes, in a gap of at most this
 #: many pixels, gets the stripe of the side of the located border its centre lies on (the
 #: flipping bit sits near half way there, so the decoder had no margin to decide it).
@@ -201,7 +206,8 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], lit: 
             high = _side_mean(levels, plane, r, a, max(a, last[i] - SKIP))
             b = min(last[i + 1], first[i + 1] + SKIP + SIDE - 1)
             low = _side_mean(levels, plane, r, min(b, first[i + 1] + SKIP), b)
-            position[i] = _crossing(levels, plane, r, last[i], first[i + 1], high, low)
+            position[i] = _crossing(levels, plane, r, max(first[i], last[i] - CROSSING_REACH),
+                                    min(last[i + 1], first[i + 1] + CROSSING_REACH), high, low)
             line[i] = borders[min(k, k2)]
             if offsets:  # the offset of the windows at the crossing, between its two pixels
                 j = min(int(position[i]), width - 2)
