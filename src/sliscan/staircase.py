@@ -65,7 +65,7 @@ BORDER_AGREEMENT = 2.0
 #: crosses the carriers obliquely over several pixels); a shorter run gives what it has.  The
 #: flipping bit's level stays the same across the run (its other border flips another bit).
 SIDE = 5
-SKIP = 8
+SKIP = 5
 #: The crossing is looked for this many pixels into each run as well as in the gap between them:
 #: where the decoder's transition lies a pixel off the level's midpoint.
 CROSSING_REACH = 1
