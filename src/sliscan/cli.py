@@ -155,6 +155,7 @@ def _projector_option(**kwargs: Any) -> Callable[[Callable], Callable]:
 _overwrite_option = click.option("--overwrite", is_flag=True,
                                  help="Replace output files that exist (else an existing output is an error).")
 
+
 def _scan_choices_options(command: Callable) -> Callable:
     """``--decisions``, ``--albedo-steps/--no-albedo-steps`` and ``--stripe-lines/--stripe-centres``,
     handed to `command` as one ``choices`` `ScanChoices` argument."""

@@ -172,13 +172,13 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], lit: 
     outputs (NaN elsewhere): for the valid pixels of a run between two borders of different
     lines the line's `slope` (lines per pixel), one border (`anchor`, its position; `line_at`,
     its line) and the cubic between the two (`between`); for a run with one border that
-    border, and the slope of the run beyond it (`near_slope`) if that one has two; the stripe
-    of every pixel given a line (`side`, int16, -1 elsewhere), which takes in the `lit`
-    pixels left undecided in a gap of at most `FILL_GAP` between two runs, on the side of the
-    border their centre lies on.  With
+    border, and the slope of the run beyond it (`near_slope`) if that one has two.  With
     `offset` ``(H, W)`` (`Demodulated.offset`, framed likewise; ``(1, 1)``: none), `described`:
     where along the carriers the levels that placed the run's borders were measured, relative
-    to the pixel (interpolated between its two borders)."""
+    to the pixel (interpolated between its two borders).  `side` (int16, -1 elsewhere): the
+    stripe of every pixel given a line, which includes the `lit` pixels left undecided in a
+    gap of at most `FILL_GAP` between two runs, on the side of the border their centre lies
+    on."""
     width = stripe.shape[1]
     first, last = np.empty(width, np.intp), np.empty(width, np.intp)
     label, own_first, own_last = np.empty(width, np.intp), np.empty(width, np.intp), np.empty(width, np.intp)
@@ -235,8 +235,9 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], lit: 
             if np.isfinite(own):
                 m0, m1 = _tangent(position, line, i - 1, n - 1), _tangent(position, line, i, n - 1)
             for x in range(first[i], last[i] + 1):
-                if valid[r, x] or lit[r, x] and (x < own_first[i] and own_first[i] - own_last[i - 1] - 1 <= FILL_GAP
-                                                 or x > own_last[i] and own_first[i + 1] - own_last[i] - 1 <= FILL_GAP):
+                in_gap = (x < own_first[i] and own_first[i] - own_last[i - 1] - 1 <= FILL_GAP
+                          or x > own_last[i] and own_first[i + 1] - own_last[i] - 1 <= FILL_GAP)
+                if valid[r, x] or (lit[r, x] and in_gap):
                     side[r, x] = label[i]
                     slope[r, x], anchor[r, x], line_at[r, x], near_slope[r, x] = own, y0, l0, near
                     if np.isfinite(own):  # cubic Hermite between the two borders
