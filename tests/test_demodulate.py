@@ -135,6 +135,38 @@ def test_adaptive_window_keeps_a_step_out():
     assert np.all(adaptive.amplitude[0, 0, 305:320] < 1e-3)  # shadow side stays dark
 
 
+@pytest.mark.parametrize("follow_scale", [False, True])
+def test_the_centred_envelopes_are_those_of_the_centred_fit(follow_scale):
+    # a shadow at x = 300 makes the windows next to it one-sided; `Demodulated.centred` keeps
+    # what the centred fit (adaptive=False) gives there, with its offsets (0 but within half a
+    # window of the line's ends, -0.5 for an even window), and shares the chosen windows' DC;
+    # with chirped carriers the lines are resampled (`along_scale`) and taken back alike
+    image, carriers = synthetic_lines(amplitudes=(0.1, 0.0, 0.05, 0.02), slope=0)
+    if follow_scale:
+        x = np.arange(image.shape[1])
+        image = np.asarray([np.interp(x + np.cumsum(np.full(x.size, 0.03)) * (x / x.size), x, row) for row in image],
+                           np.float32)
+    image[:, 300:] = 0.1
+    both = demodulate_window(image, carriers, centred=True, follow_scale=follow_scale)
+    centred = demodulate_window(image, carriers, adaptive=False, follow_scale=follow_scale)
+    assert np.any(both.offset[:, 250:300] != 0)  # one-sided windows next to the shadow
+    np.testing.assert_allclose(both.centred.amplitude, centred.amplitude, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(both.centred.offset, centred.offset)
+    assert both.centred.dc is both.dc or follow_scale
+    np.testing.assert_array_equal(both.centred.dc, both.dc)
+    assert demodulate_window(image, carriers).centred is None
+
+
+def test_columns_orientation_transposes_the_centred_envelopes_too():
+    image, carriers = synthetic_lines(lines=64, width=256, window=32)
+    spec = patterns.PatternSpec(projector_size=(256, 64), bits=4, carriers=(8.0, 16.0, 24.0, 32.0))
+    rows, _ = demodulate(image, spec, carriers=carriers, centred=True)
+    cols, _ = demodulate(image.T.copy(), spec.with_(orientation="columns", projector_size=(64, 256)),
+                         carriers=carriers, centred=True)
+    np.testing.assert_allclose(cols.centred.amplitude, rows.centred.amplitude.transpose(0, 2, 1), atol=1e-6)
+    np.testing.assert_array_equal(cols.centred.offset, rows.centred.offset.T)
+
+
 def test_misfit_judges_a_pixel_from_its_windows_side_of_a_depth_edge():
     """A depth edge at x = 300: another code, other carrier phases and a darker, farther surface
     behind it.  The pixels next to it decode from the window on their own side, and the misfit

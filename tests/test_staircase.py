@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from sliscan import patterns, simulate
-from sliscan.decode import Decoded
+from sliscan.decode import Decoded, decode
 from sliscan.evaluate import accuracy, true_proj_line
 from sliscan.patterns import code_bits, stripe_codes, stripe_of_line
 from sliscan.pipeline import Scanner
-from sliscan.staircase import border_lines, flipping_planes, interpolate_lines, prefer_borders
+from sliscan.staircase import border_lines, flipping_planes, interpolate_lines, prefer_borders, prefer_centred
 
 
 @pytest.mark.parametrize("spec", [patterns.thesis_spec((1024, 768)), patterns.default_spec((1024, 768)),
@@ -194,3 +194,49 @@ def test_interpolated_stripes_remove_the_staircase_on_a_realistic_plane(name):
     true_line = true_proj_line(capture.truth, spec)
     assert np.abs(lines.stripe[filled] - stripe_of_line(true_line[filled], spec)).max() <= 1
     assert np.median(np.abs(lines.proj_map - true_line)[filled]) < 1.0
+
+
+def test_the_centred_windows_line_is_taken_where_it_agrees_with_the_chosen_windows():
+    chosen = np.array([[10.0, 20.0, 30.0, 40.0, np.nan]], np.float32)
+    centred = np.array([[10.5, 23.0, 30.4, 40.2, 50.0]], np.float32)
+    stripe = np.zeros((1, 5), np.int16)
+    lines = Decoded(stripe=stripe, proj_map=chosen, valid=np.isfinite(chosen), lit=np.ones((1, 5), bool),
+                    confidence=np.ones((1, 5), np.float32), levels=np.zeros((4, 1, 5), np.float32))
+    other = replace(lines, proj_map=centred, stripe=np.array([[0, 0, 0, 1, 0]], np.int16),
+                    valid=np.array([[True, True, False, True, True]]))
+    out = prefer_centred(lines, other, np.zeros((1, 5), np.float32), agreement=2.0)
+    # taken at 0; 1 too far off, 2 not valid in the centred decoding, 3 another stripe, 4 not valid
+    np.testing.assert_array_equal(out.proj_map, np.array([[10.5, 20.0, 30.0, 40.0, np.nan]], np.float32))
+    shifted = prefer_centred(lines, other, np.array([[5, 0, 0, 0, 0]], np.float32), agreement=2.0)
+    assert shifted.proj_map[0, 0] == 10.0  # at the frame's end the centred window is shifted inside
+    np.testing.assert_array_equal(out.stripe, lines.stripe)
+    np.testing.assert_array_equal(out.valid, lines.valid)
+
+
+def test_centred_windows_place_oblique_borders_better_on_a_turned_plane():
+    """A plane turned 30 degrees about the vertical at 640x480 (realistic conditions): its stripe
+    borders cross the carriers obliquely, where the adaptive windows end and start at the pixels
+    on either side.  On the pixels both decodings get right, the lines interpolated from the
+    centred windows' levels have 0.77 of the chosen windows' median error (measured 0.63 -> 0.49
+    projector lines; seeds 3 and 4: 0.79, 0.72; bound 0.85), and what `Scanner.scan` returns
+    (`prefer_centred`) is within 5 % of the better of the two."""
+    rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768))
+    spec = patterns.default_spec((1024, 768))
+    capture = simulate.render(rig, simulate.tilted_plane_scene(30.0, axis="y"), patterns.render_pattern(spec),
+                              simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=2), seed=2))
+    scanner = Scanner(spec, rig.calibration)
+    demod, carriers = scanner.demodulate(capture.image)
+    stripe_px = spec.phase_lines / spec.stripes / carriers.scale
+    chosen = interpolate_lines(decode(demod, spec), spec, stripe_px=stripe_px, offset=demod.offset,
+                               window=carriers.window)
+    centred = interpolate_lines(decode(demod.centred, spec), spec, stripe_px=stripe_px, offset=demod.centred.offset,
+                                window=carriers.window)
+    truth = true_proj_line(capture.truth, spec)
+    right = (chosen.valid & centred.valid & (chosen.stripe == stripe_of_line(truth, spec))
+             & (centred.stripe == chosen.stripe))
+    error_chosen = np.median(np.abs(chosen.proj_map - truth)[right])
+    error_centred = np.median(np.abs(centred.proj_map - truth)[right])
+    assert error_centred < 0.85 * error_chosen
+    scanned = scanner.scan(capture.image)
+    both = right & scanned.valid
+    assert np.median(np.abs(scanned.proj_map - truth)[both]) <= 1.05 * min(error_chosen, error_centred)

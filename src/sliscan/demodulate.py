@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numba
@@ -118,6 +119,13 @@ class Demodulated:
         R carriers' envelopes (a phase channel's, after the bits') from a centred window of two
         spacing periods with a ramp per carrier (`demodulate_window`'s `ramped`), relative to the
         DC as `amplitude` is; NaN where that window leaves the line.  None unless asked for.
+    centred : Demodulated or None
+        The same fit with every pixel's envelopes and `offset` from its centred window (shifted
+        inside the line at its ends), where `amplitude` may come from a one-sided one; its
+        `dc`, `residual`, `misfit` and `noise` are the chosen window's (the same arrays).  Where
+        a stripe border crosses the carriers obliquely, the centred window's levels change
+        across it symmetrically, the one-sided ones' by jumps (`sliscan.staircase.
+        prefer_centred`).  None unless asked for (`demodulate_window`'s `centred`).
     """
 
     amplitude: NDArray[np.float32]
@@ -127,6 +135,17 @@ class Demodulated:
     noise: NDArray[np.float32] | None = None
     offset: NDArray[np.float32] | None = None
     ramped: NDArray[np.float32] | None = None
+    centred: Demodulated | None = None
+
+    def mapped(self, fn: Callable[[NDArray], NDArray]) -> Demodulated:
+        """This demodulation with `fn` applied to every array (`centred`'s too), e.g. to
+        transpose it."""
+        def apply(value: NDArray | Demodulated | None) -> NDArray | Demodulated | None:
+            if value is None:
+                return None
+            return value.mapped(fn) if isinstance(value, Demodulated) else fn(value)
+
+        return Demodulated(**{f.name: apply(getattr(self, f.name)) for f in fields(self)})
 
 
 def along_carriers(image: NDArray, spec: PatternSpec) -> NDArray:
@@ -388,14 +407,16 @@ def _phasors(omega: NDArray[np.float64], width: int, block: int = 64) -> NDArray
 def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int, adaptive: bool,
               unexplained: NDArray[np.float32], var: NDArray[np.float32], dc: NDArray[np.float32],
               amp: NDArray[np.float32], misfit: NDArray[np.float32], offset: NDArray[np.float32],
-              ramped_first: int, ramped: NDArray[np.float32], scale: NDArray[np.float32]) -> None:
+              ramped_first: int, ramped: NDArray[np.float32], scale: NDArray[np.float32],
+              centred: NDArray[np.float32], centred_offset: NDArray[np.float32]) -> None:
     """Best least-squares window fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` at every
     pixel of one line; writes the outputs of `demodulate_window` for it (``(W,)`` each, `amp`
     ``(C, W)``), in image units, and if `ramped_first` >= 0 those of `_fit_ramped` (`ramped`
     ``(R, W)``).  If `scale` is ``(W,)``: the carriers' local scale error (`_scale_errors`)
     between the one-period windows that end and start at every `FOLLOW_SCALE_STEP`-th pixel,
     where both leave at most `FOLLOW_SCALE_EXPLAINED` of their AC energy unexplained, NaN
-    elsewhere.
+    elsewhere.  If `centred` is ``(C, W)``: every carrier's envelope from the centred window,
+    and that window's offset into `centred_offset` ``(W,)``.
 
     The line is divided by its flat field, then every window sum comes from running sums.
     Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
@@ -516,6 +537,13 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
             prediction[xi] += 2 * (rotated[n, best] * np.conj(phasors[n, near[xi]]) * near0[n]).real
             c = fit_c[n, best]
             amp[n, xi] = 2 * np.sqrt(c.real ** 2 + c.imag ** 2) * flat[xi]  # not abs (hypot): 3x faster
+    if centred.shape[1] == width:
+        for xi in range(width):
+            s0 = _window_start(xi, width, window, 0)
+            centred_offset[xi] = s0 + (window - 1) / 2 - xi
+            for n in range(n_carriers):
+                c = fit_c[n, s0]
+                centred[n, xi] = 2 * np.sqrt(c.real ** 2 + c.imag ** 2) * flat[xi]
     for xi in range(width):
         best, ns = chosen[xi], near[xi]
         observed = (cum_i[ns + short] - cum_i[ns]) / short
@@ -683,24 +711,27 @@ def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: N
                adaptive: bool, lines: NDArray[np.intp], unexplained: NDArray[np.float32], var: NDArray[np.float32],
                dc: NDArray[np.float32], amp: NDArray[np.float32], misfit: NDArray[np.float32],
                offset: NDArray[np.float32], ramped_first: int, ramped: NDArray[np.float32],
-               scale: NDArray[np.float32]) -> None:
+               scale: NDArray[np.float32], centred: NDArray[np.float32], centred_offset: NDArray[np.float32]) -> None:
     """`_fit_line` on the given `lines` of `img` ``(H, W)``, without the GIL (threads run
     disjoint sets of lines); `omegas` ``(H, C)`` radians per pixel, `windows` ``(H,)``;
     outputs ``(H, W)``, `amp` ``(C, H, W)``, if `ramped_first` >= 0 `ramped` ``(R, H, W)``
-    (`_fit_ramped`), and if `scale` is ``(H, W)`` the scale errors of every
-    `FOLLOW_SCALE_STEP`-th line (NaN on the others)."""
+    (`_fit_ramped`), if `scale` is ``(H, W)`` the scale errors of every
+    `FOLLOW_SCALE_STEP`-th line (NaN on the others), and if `centred` is ``(C, H, W)`` the
+    centred windows' envelopes and offsets (`centred_offset` ``(H, W)``)."""
+    keep_centred = centred.shape[1] > 1
     for r in lines:
         measure = scale.shape[0] > 1 and r % FOLLOW_SCALE_STEP == 0
         if scale.shape[0] > 1 and not measure:
             scale[r] = np.nan
         _fit_line(img[r], omegas[r], windows[r], short, adaptive, unexplained[r], var[r], dc[r], amp[:, r], misfit[r],
                   offset[r], ramped_first, ramped[:, r] if ramped_first >= 0 else ramped[:, 0],
-                  scale[r] if measure else scale[0, :1])
+                  scale[r] if measure else scale[0, :1], centred[:, r] if keep_centred else centred[:, 0],
+                  centred_offset[r] if keep_centred else centred_offset[0])
 
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
                       albedo: str | None = "steps", ramped: range | None = None, follow_scale: bool = True,
-                      workers: int | None = None) -> Demodulated:
+                      centred: bool = False, workers: int | None = None) -> Demodulated:
     """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
 
     The capture is first divided by the sharp steps of its albedo (`normalise_albedo`), which
@@ -739,6 +770,8 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         pitched toward the camera, chirps the carriers along each line (+-4.5 % on a plane
         turned 60 degrees about the vertical), and a fixed-frequency window loses the finest
         carriers there.
+    centred : bool
+        Also keep every pixel's centred window's envelopes (`Demodulated.centred`).
     workers : int, optional
         Threads fitting lines in parallel (default: `default_workers`).
 
@@ -763,15 +796,19 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     first = -1 if ramped is None or len(ramped) == 0 else ramped[0]
     ramp_amp = np.empty((len(ramped), h, w) if first >= 0 else (1, 1, w), dtype=np.float32)
     scale = np.empty((h, w) if follow_scale else (1, 1), dtype=np.float32)
+    centred_amp = np.empty((carriers.frequencies.size, h, w) if centred else (1, 1, 1), dtype=np.float32)
+    centred_offset = np.empty((h, w) if centred else (1, 1), dtype=np.float32)
     over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit,
-                                       offset, first, ramp_amp, scale), h, workers)
+                                       offset, first, ramp_amp, scale, centred_amp, centred_offset), h, workers)
     if follow_scale:
         error, measured = scale_map(scale, carriers)
         if measured.any() and float(np.median(np.abs(error[measured]))) > FOLLOW_SCALE_MIN:
             return along_scale(image, carriers, error, adaptive=adaptive, albedo=albedo, ramped=ramped,
-                               workers=workers)
+                               centred=centred, workers=workers)
     if gain is not None:  # back to image units; every ratio (what the decoder uses) is unchanged
         amp *= gain[None]
+        if centred:
+            centred_amp *= gain[None]
         if first >= 0:
             ramp_amp *= gain[None]
         dc *= gain
@@ -780,8 +817,11 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     # amplitude noise: residual variance over the window's degrees of freedom, times 2 / L
     dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
     noise = np.sqrt(2 * unexplained / dof[:, None])
-    return Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise,
-                       offset=offset, ramped=ramp_amp if first >= 0 else None)
+    demod = Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise,
+                        offset=offset, ramped=ramp_amp if first >= 0 else None)
+    if centred:
+        demod = replace(demod, centred=replace(demod, amplitude=centred_amp, offset=centred_offset, ramped=None))
+    return demod
 
 
 def scale_map(scale: NDArray[np.float32], carriers: Carriers) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
@@ -821,13 +861,8 @@ def along_scale(image: NDArray[np.floating], carriers: Carriers, error: NDArray[
                           cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     fitted = demodulate_window(resampled, carriers, follow_scale=False, **options)
     nearest = np.clip(np.rint((warp - warp[:, :1]) / step), 0, w - 1).astype(np.intp)  # each pixel's sample
-
-    def back(a: NDArray | None) -> NDArray | None:
-        return None if a is None else np.ascontiguousarray(np.take_along_axis(a, np.broadcast_to(nearest, a.shape),
-                                                                               axis=-1))
-
-    return Demodulated(back(fitted.amplitude), back(fitted.dc), back(fitted.residual), back(fitted.misfit),
-                       back(fitted.noise), back(fitted.offset), back(fitted.ramped))
+    return fitted.mapped(lambda a: np.ascontiguousarray(np.take_along_axis(a, np.broadcast_to(nearest, a.shape),
+                                                                            axis=-1)))
 
 
 #: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`;
@@ -1250,7 +1285,8 @@ def check_exposure(image: NDArray[np.float32]) -> None:
 
 
 def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = "window",
-               carriers: Carriers | None = None, albedo: str | None = "steps") -> tuple[Demodulated, Carriers]:
+               carriers: Carriers | None = None, albedo: str | None = "steps",
+               centred: bool = False) -> tuple[Demodulated, Carriers]:
     """Detect the carriers (unless given) and demodulate a capture in camera orientation.
 
     Parameters
@@ -1266,6 +1302,8 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     albedo : str or None
         ``"window"`` only: the albedo estimate the capture is divided by first
         (`normalise_albedo`), None for none.
+    centred : bool
+        ``"window"`` only: also every pixel's centred window's envelopes (`Demodulated.centred`).
 
     Returns
     -------
@@ -1279,12 +1317,8 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     view = along_carriers(img, spec)
     found = carriers if carriers is not None else detect_carriers(img, spec)
     ramped = range(spec.bits, spec.bits + len(spec.phase_carriers))  # the phase channel's carriers
-    out = (demodulate_window(view, found, albedo=albedo, ramped=ramped) if method == "window"
+    out = (demodulate_window(view, found, albedo=albedo, ramped=ramped, centred=centred) if method == "window"
            else demodulate_bandpass(view, found))
     if spec.orientation == "columns":
-        def back(a: NDArray | None) -> NDArray | None:
-            return None if a is None else np.ascontiguousarray(np.swapaxes(a, -1, -2))
-
-        out = Demodulated(back(out.amplitude), back(out.dc), back(out.residual), back(out.misfit), back(out.noise),
-                          back(out.offset), back(out.ramped))
+        out = out.mapped(lambda a: np.ascontiguousarray(np.swapaxes(a, -1, -2)))
     return out, found

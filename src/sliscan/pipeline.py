@@ -28,7 +28,7 @@ from sliscan.outliers import (default_max_jump, remove_jump_edges, remove_narrow
 from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
 from sliscan.sequences import decode_frames
-from sliscan.staircase import interpolate_lines, prefer_borders
+from sliscan.staircase import interpolate_lines, prefer_borders, prefer_centred
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
 
 
@@ -339,7 +339,7 @@ class Scanner:
             return self._interpolated(baseband), carriers
         img = check_image("capture", image, shape=self.calibration.camera.shape)
         demod, found = demodulate(img, self.spec, method=self.method, carriers=self._known_carriers(),
-                                  albedo=self.albedo)
+                                  albedo=self.albedo, centred=self.interpolate_stripes and self.method == "window")
         self._keep_carriers(found)
         return demod, found
 
@@ -348,8 +348,7 @@ class Scanner:
         demod = baseband.demodulated(self.calibration.camera.shape[1 if self.spec.orientation == "rows" else 0])
         if self.spec.orientation == "rows":
             return demod
-        return Demodulated(*(np.ascontiguousarray(np.swapaxes(a, -1, -2)) for a in
-                             (demod.amplitude, demod.dc, demod.residual)))
+        return demod.mapped(lambda a: np.ascontiguousarray(np.swapaxes(a, -1, -2)))
 
     def _known_carriers(self) -> Carriers | None:
         return self._carriers if self.reuse_carriers else None
@@ -437,8 +436,14 @@ class Scanner:
         stripes = decode(demod, self.spec, **self.decode_options)
         decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image, **self.fringe_options)
         if self.interpolate_stripes:
-            lines = interpolate_lines(stripes, self.spec, stripe_px=self.spec.phase_lines / self.spec.stripes
-                                      / carriers.scale, offset=demod.offset, window=carriers.window)
+            stripe_px = self.spec.phase_lines / self.spec.stripes / carriers.scale
+            lines = interpolate_lines(stripes, self.spec, stripe_px=stripe_px, offset=demod.offset,
+                                      window=carriers.window)
+            if demod.centred is not None:
+                centred = decode(demod.centred, self.spec, **self.decode_options)
+                lines = prefer_centred(lines, interpolate_lines(centred, self.spec, stripe_px=stripe_px,
+                                                                offset=demod.centred.offset, window=carriers.window),
+                                       demod.centred.offset)
             decoded = prefer_borders(decoded, lines.proj_map, self.spec) if self.spec.phase_carriers else lines
         t2 = time.perf_counter()
         points, valid = self._measured(decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
