@@ -22,7 +22,10 @@ Two demodulators share one output type, `Demodulated`:
   changes along the lines themselves (a surface turned steeply about the phase direction),
   the lines are fitted resampled along the scale the first fit measured (`along_scale`).  A
   phase channel's carriers are also fitted in two-period windows with a ramp per carrier
-  (`_fit_ramped`), which follow a fringe that crosses the lines obliquely.
+  (`_fit_ramped`), which follow a fringe that crosses the lines obliquely.  On request every
+  pixel's centred window's envelopes are kept as well (`Demodulated.centred`): where a stripe
+  border crosses the lines obliquely, they change across it smoothly where the chosen ones jump
+  (`sliscan.staircase.prefer_centred` places such borders from them).
 
 Frequencies are in cycles per camera pixel along the carrier direction (camera `x` for the
 ``rows`` orientation, camera `y` for ``columns``).

@@ -441,9 +441,10 @@ class Scanner:
                                       window=carriers.window)
             if demod.centred is not None:
                 centred = decode(demod.centred, self.spec, **self.decode_options)
-                lines = prefer_centred(lines, interpolate_lines(centred, self.spec, stripe_px=stripe_px,
-                                                                offset=demod.centred.offset, window=carriers.window),
-                                       demod.centred.offset)
+                centred_lines = interpolate_lines(centred, self.spec, stripe_px=stripe_px,
+                                                  offset=demod.centred.offset, window=carriers.window)
+                lines = prefer_centred(lines, centred_lines, demod.centred.offset, self.spec, stripe_px=stripe_px,
+                                       window=carriers.window)
             decoded = prefer_borders(decoded, lines.proj_map, self.spec) if self.spec.phase_carriers else lines
         t2 = time.perf_counter()
         points, valid = self._measured(decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)

@@ -67,8 +67,12 @@ MAX_SLOPE = 2.0
 #: lines of the phase channel's.
 BORDER_AGREEMENT = 2.0
 #: `prefer_centred` takes the line from the centred windows' levels where it lies within this
-#: many projector lines of the chosen windows' (1 kept 70-90 % of the gain on the turned planes).
+#: many projector lines of the chosen windows' (1 kept 70-90 % of the gain on the turned planes) ...
 CENTRED_AGREEMENT = 2.0
+#: ... and where the border moves at least this many camera pixels along the phase direction
+#: over half a window along the carriers (0 took the centred windows' bias at albedo steps on
+#: the checkered captures; 0.5 and more gave up part of the gain on the spheres).
+CENTRED_MIN_DRIFT = 0.25
 #: The levels either side of a border are averaged over at most `SIDE` pixels of each run,
 #: leaving out the `SKIP` next to the border (blur mixes the two sides' levels there, unevenly
 #: where the border falls off a pixel's centre, and a demodulation window smears a border that
@@ -371,23 +375,31 @@ def _slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.
         return np.where(count >= 0.25 * max(window, 1), total / count, np.float32(np.nan)).astype(np.float32)
 
 
-def prefer_centred(lines: Decoded, centred: Decoded, offset: NDArray[np.float32], *,
-                   agreement: float = CENTRED_AGREEMENT) -> Decoded:
+def prefer_centred(lines: Decoded, centred: Decoded, offset: NDArray[np.float32], spec: PatternSpec, *,
+                   stripe_px: float, window: int, agreement: float = CENTRED_AGREEMENT,
+                   min_drift: float = CENTRED_MIN_DRIFT) -> Decoded:
     """`lines` (`interpolate_lines` of a decoding) with the lines of `centred` (`interpolate_lines`
     of the same capture decoded from its centred windows' levels, `Demodulated.centred`) where
-    both are valid with the same stripe and within `agreement` projector lines of each other,
-    and the centred window is centred on the pixel (`offset` ``(H, W)``, the centred windows'
-    `Demodulated.offset`, at most half a pixel as for an even window: within half a window of
-    the frame's ends the window is shifted inside, and the chosen windows' lines were measured
-    better there); stripes and validity unchanged.
+    the border crosses the carriers obliquely; stripes and validity unchanged.
 
     Where a border crosses the carriers obliquely the centred windows place it better (on the
     virtual rig's plane turned 30 degrees about the vertical, border positions 0.36 camera
-    pixels median off against 0.81); next to a depth or shadow edge a centred window mixes the
-    two sides, which the agreement test leaves out.
+    pixels median off against 0.81).  Taken where both are valid with the same stripe and
+    within `agreement` projector lines of each other (next to a depth or shadow edge a centred
+    window mixes the two sides), where the border drifts at least `min_drift` camera pixels
+    along the phase direction over half a `window` along the carriers (the slope of `lines`
+    along the carriers against `stripe_px`, a stripe's height; at a border along the carriers
+    the chosen windows are as good, and next to an albedo step better), and where the centred
+    window is centred on the pixel (`offset` ``(H, W)``, the centred windows'
+    `Demodulated.offset`, at most half a pixel as for an even window: within half a window of
+    the frame's ends the window is shifted inside, and the chosen windows' lines were measured
+    better there).
     """
+    slope = along_carriers(_slope_along_carriers(along_carriers(lines.proj_map, spec), window), spec)
+    lines_per_px = spec.phase_lines / spec.stripes / stripe_px  # along the phase direction
     with np.errstate(invalid="ignore"):
-        agree = (lines.valid & centred.valid & (centred.stripe == lines.stripe) & (np.abs(offset) <= 0.5)
+        oblique = np.abs(slope) * (window / 2) >= min_drift * lines_per_px  # NaN compares false
+        agree = (lines.valid & centred.valid & (centred.stripe == lines.stripe) & (np.abs(offset) <= 0.5) & oblique
                  & (np.abs(centred.proj_map - lines.proj_map) <= agreement))
     return replace(lines, proj_map=np.where(agree, centred.proj_map, lines.proj_map).astype(np.float32))
 
