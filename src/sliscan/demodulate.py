@@ -125,7 +125,7 @@ class Demodulated:
     centred : Demodulated or None
         The same fit with every pixel's envelopes and `offset` from its centred window (shifted
         inside the line at its ends), where `amplitude` may come from a one-sided one; its
-        `dc`, `residual`, `misfit` and `noise` are the chosen window's (the same arrays).  Where
+        `dc`, `residual`, `misfit` and `noise` are the chosen window's (the same values).  Where
         a stripe border crosses the carriers obliquely, the centred window's levels change
         across it symmetrically, the one-sided ones' by jumps (`sliscan.staircase.
         prefer_centred`).  None unless asked for (`demodulate_window`'s `centred`).

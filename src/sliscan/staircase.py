@@ -31,7 +31,8 @@ direction), the adaptive demodulator picks windows that end or start at the pixe
 side of it, and the level of the flipping bit jumps between them instead of changing smoothly:
 the crossing lies up to a few pixels off.  The centred windows' levels change across such a
 border symmetrically, so `prefer_centred` takes the lines that the decoding of the centred
-windows' levels gives (`Demodulated.centred`) wherever it agrees with the chosen windows'.
+windows' levels gives (`Demodulated.centred`) wherever the border drifts across a window and
+they agree with the chosen windows'.
 
 With a phase channel the interpolated line replaces the phase's where the two agree
 (`prefer_borders`): the borders are the more precise, the phase the more robust.  Measured on
