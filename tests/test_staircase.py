@@ -200,21 +200,23 @@ def test_the_centred_windows_line_is_taken_where_it_agrees_on_an_oblique_border(
     # row 0: the line changes by 1.5 per pixel along the carriers (a rows pattern's x), a border
     # crossing them obliquely; row 1: the same lines along the carriers, a border along them
     spec = patterns.default_spec((1024, 768))
-    chosen = np.array([[10.0, 11.5, 13.0, 14.5, np.nan], [10.0, 10.0, 10.0, 10.0, 10.0]], np.float32)
-    centred = np.array([[10.5, 14.0, 13.4, 14.7, 50.0], [10.5, 10.5, 10.5, 10.5, 10.5]], np.float32)
-    lines = Decoded(stripe=np.zeros((2, 5), np.int16), proj_map=chosen, valid=np.isfinite(chosen),
-                    lit=np.ones((2, 5), bool), confidence=np.ones((2, 5), np.float32),
-                    levels=np.zeros((4, 2, 5), np.float32))
-    other = replace(lines, proj_map=centred, stripe=np.array([[0, 0, 0, 1, 0], [0] * 5], np.int16),
-                    valid=np.array([[True, True, False, True, True], [True] * 5]))
+    chosen = np.array([[10.0, 11.5, 13.0, 14.5, 16.0, np.nan], [10.0] * 6], np.float32)
+    centred = np.array([[10.5, 14.0, 13.4, 14.7, 16.3, 50.0], [10.5] * 6], np.float32)
+    lines = Decoded(stripe=np.zeros((2, 6), np.int16), proj_map=chosen, valid=np.isfinite(chosen),
+                    lit=np.ones((2, 6), bool), confidence=np.ones((2, 6), np.float32),
+                    levels=np.zeros((4, 2, 6), np.float32))
+    other = replace(lines, proj_map=centred, stripe=np.array([[0, 0, 0, 2, 1, 0], [0] * 6], np.int16),
+                    valid=np.array([[True, True, False, True, True, True], [True] * 6]))
     options = dict(stripe_px=48.0, window=3, agreement=2.0)  # a projector line per camera pixel
-    out = prefer_centred(lines, other, np.zeros((2, 5), np.float32), spec, **options)
-    # taken at 0; 1 too far off, 2 not valid in the centred decoding, 3 another stripe, 4 not valid
-    np.testing.assert_array_equal(out.proj_map[0], np.array([10.5, 11.5, 13.0, 14.5, np.nan], np.float32))
+    out = prefer_centred(lines, other, np.zeros((2, 6), np.float32), spec, **options)
+    # taken at 0 and, with its stripe one away, at 4; 1 too far off, 2 not valid in the centred
+    # decoding, 3 two stripes away, 5 not valid
+    np.testing.assert_array_equal(out.proj_map[0], np.array([10.5, 11.5, 13.0, 14.5, 16.3, np.nan], np.float32))
+    np.testing.assert_array_equal(out.stripe[0], [0, 0, 0, 0, 1, 0])
     np.testing.assert_array_equal(out.proj_map[1], chosen[1])  # the border along the carriers
-    np.testing.assert_array_equal(out.stripe, lines.stripe)
+    np.testing.assert_array_equal(out.stripe[1], lines.stripe[1])
     np.testing.assert_array_equal(out.valid, lines.valid)
-    shifted = prefer_centred(lines, other, np.array([[5, 0, 0, 0, 0]] * 2, np.float32), spec, **options)
+    shifted = prefer_centred(lines, other, np.array([[5, 0, 0, 0, 0, 0]] * 2, np.float32), spec, **options)
     assert shifted.proj_map[0, 0] == 10.0  # at the frame's end the centred window is shifted inside
 
 

@@ -30,9 +30,10 @@ Where a border crosses the carriers' lines obliquely (a surface turned about the
 direction), the adaptive demodulator picks windows that end or start at the pixel on either
 side of it, and the level of the flipping bit jumps between them instead of changing smoothly:
 the crossing lies up to a few pixels off.  The centred windows' levels change across such a
-border symmetrically, so `prefer_centred` takes the lines that the decoding of the centred
-windows' levels gives (`Demodulated.centred`) wherever the border drifts across a window and
-they agree with the chosen windows'.
+border symmetrically, so `prefer_centred` takes the lines (and, a pixel between the two
+placements, the stripe) that the decoding of the centred windows' levels gives
+(`Demodulated.centred`) wherever the border drifts across a window and they agree with the
+chosen windows'.
 
 With a phase channel the interpolated line replaces the phase's where the two agree
 (`prefer_borders`): the borders are the more precise, the phase the more robust.  Measured on
@@ -379,15 +380,16 @@ def _slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.
 def prefer_centred(lines: Decoded, centred: Decoded, offset: NDArray[np.float32], spec: PatternSpec, *,
                    stripe_px: float, window: int, agreement: float = CENTRED_AGREEMENT,
                    min_drift: float = CENTRED_MIN_DRIFT) -> Decoded:
-    """`lines` (`interpolate_lines` of a decoding) with the lines of `centred` (`interpolate_lines`
-    of the same capture decoded from its centred windows' levels, `Demodulated.centred`) where
-    the border crosses the carriers obliquely; stripes and validity unchanged.
+    """`lines` (`interpolate_lines` of a decoding) with the lines and stripes of `centred`
+    (`interpolate_lines` of the same capture decoded from its centred windows' levels,
+    `Demodulated.centred`) where the border crosses the carriers obliquely; validity unchanged.
 
     Where a border crosses the carriers obliquely the centred windows place it better (on the
     virtual rig's plane turned 30 degrees about the vertical, border positions 0.36 camera
-    pixels median off against 0.81).  Taken where both are valid with the same stripe and
-    within `agreement` projector lines of each other (next to a depth or shadow edge a centred
-    window mixes the two sides), where the border drifts at least `min_drift` camera pixels
+    pixels median off against 0.81), so a pixel between the two placements takes the centred
+    decoding's stripe, one away.  Taken where both are valid with stripes at most one apart and
+    lines within `agreement` projector lines of each other (next to a depth or shadow edge a
+    centred window mixes the two sides), where the border drifts at least `min_drift` camera pixels
     along the phase direction over half a `window` along the carriers (the slope of `lines`
     along the carriers against `stripe_px`, a stripe's height; at a border along the carriers
     the chosen windows are as good, and next to an albedo step better), and where the centred
@@ -400,9 +402,10 @@ def prefer_centred(lines: Decoded, centred: Decoded, offset: NDArray[np.float32]
     lines_per_px = spec.phase_lines / spec.stripes / stripe_px  # along the phase direction
     with np.errstate(invalid="ignore"):
         oblique = np.abs(slope) * (window / 2) >= min_drift * lines_per_px  # NaN compares false
-        agree = (lines.valid & centred.valid & (centred.stripe == lines.stripe) & (np.abs(offset) <= 0.5) & oblique
-                 & (np.abs(centred.proj_map - lines.proj_map) <= agreement))
-    return replace(lines, proj_map=np.where(agree, centred.proj_map, lines.proj_map).astype(np.float32))
+        agree = (lines.valid & centred.valid & (np.abs(centred.stripe.astype(np.int32) - lines.stripe) <= 1)
+                 & (np.abs(offset) <= 0.5) & oblique & (np.abs(centred.proj_map - lines.proj_map) <= agreement))
+    return replace(lines, proj_map=np.where(agree, centred.proj_map, lines.proj_map).astype(np.float32),
+                   stripe=np.where(agree, centred.stripe, lines.stripe).astype(np.int16))
 
 
 def prefer_borders(refined: Decoded, border_line: NDArray[np.float32], spec: PatternSpec, *,
