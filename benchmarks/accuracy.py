@@ -124,6 +124,9 @@ DECODER_VARIANTS = {
     "thesis 4-bit (stripe centres)": ("thesis 4-bit", dict(interpolate_stripes=False)),
     "sliscan 4-bit (stripe centres)": ("sliscan 4-bit", dict(interpolate_stripes=False)),
     "sliscan 4-bit + phase (no border lines)": ("sliscan 4-bit + phase", dict(interpolate_stripes=False)),
+    "thesis 4-bit (chosen windows' borders)": ("thesis 4-bit", dict(centred_borders=False)),
+    "sliscan 4-bit (chosen windows' borders)": ("sliscan 4-bit", dict(centred_borders=False)),
+    "sliscan 4-bit + phase (chosen windows' borders)": ("sliscan 4-bit + phase", dict(centred_borders=False)),
 }
 
 

@@ -247,3 +247,7 @@ def test_centred_windows_place_oblique_borders_better_on_a_turned_plane():
     scanned = scanner.scan(capture.image)
     both = right & scanned.valid
     assert np.median(np.abs(scanned.proj_map - truth)[both]) <= 1.05 * min(error_chosen, error_centred)
+    without = Scanner(spec, rig.calibration, centred_borders=False)
+    assert without.demodulate(capture.image)[0].centred is None
+    chosen_only = without.scan(capture.image)
+    assert np.median(np.abs(chosen_only.proj_map - truth)[both]) == pytest.approx(error_chosen, rel=0.02)
