@@ -172,7 +172,8 @@ def test_interpolated_stripes_remove_the_staircase_on_a_realistic_plane(name):
     """A tilted plane at 640x480 (realistic conditions, smooth albedo, seed 1): with the stripe
     centres the median error is the staircase's, ~24 mm (the oracle's); interpolated between
     the borders measured 0.34 mm (default pattern) / 0.44 mm (thesis pattern); bound 1.5 mm,
-    a sixteenth of the staircase.  The decoded stripes stay; the pixels left undecided in
+    a sixteenth of the staircase.  The decoded stripes stay (but a few by one where the centred
+    windows place an oblique border, below); the pixels left undecided in
     one-pixel gaps at a border become valid (measured +0.45 points of completeness on either
     pattern), with the stripe of the side they lie on (never more than one off the truth) and
     the line there (median error measured 0.18 / 0.25 projector lines; bound 1 line: the
@@ -189,7 +190,13 @@ def test_interpolated_stripes_remove_the_staircase_on_a_realistic_plane(name):
     assert after.median_mm < 1.5
     assert before.completeness < after.completeness < before.completeness + 0.01
     assert not (centres.valid & ~lines.valid).any()
-    np.testing.assert_array_equal(lines.stripe[centres.valid], centres.stripe[centres.valid])
+    # the decoded stripes stay, but where the centred windows place a border that crosses the
+    # carriers obliquely (`prefer_centred`; on this plane, where its borders run nearly along
+    # them, measured on 0.04 / 0.08 % of the pixels, one stripe each)
+    changed = centres.valid & (lines.stripe != centres.stripe)
+    assert changed.mean() < 0.001 and np.abs(lines.stripe[changed] - centres.stripe[changed]).max() <= 1
+    chosen = Scanner(spec, rig.calibration, centred_borders=False).scan(capture.image)
+    np.testing.assert_array_equal(chosen.stripe[centres.valid], centres.stripe[centres.valid])
     filled = lines.valid & ~centres.valid
     true_line = true_proj_line(capture.truth, spec)
     assert np.abs(lines.stripe[filled] - stripe_of_line(true_line[filled], spec)).max() <= 1
