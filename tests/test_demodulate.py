@@ -155,6 +155,10 @@ def test_the_centred_envelopes_are_those_of_the_centred_fit(follow_scale):
     assert both.centred.dc is both.dc or follow_scale
     np.testing.assert_array_equal(both.centred.dc, both.dc)
     assert demodulate_window(image, carriers).centred is None
+    one_line = demodulate_window(image[:1], carriers, centred=True, follow_scale=False)  # a single line too
+    np.testing.assert_allclose(one_line.centred.amplitude,
+                               demodulate_window(image[:1], carriers, adaptive=False, follow_scale=False).amplitude,
+                               rtol=1e-5, atol=1e-7)
 
 
 def test_columns_orientation_transposes_the_centred_envelopes_too():

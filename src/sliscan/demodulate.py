@@ -721,7 +721,7 @@ def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: N
     (`_fit_ramped`), if `scale` is ``(H, W)`` the scale errors of every
     `FOLLOW_SCALE_STEP`-th line (NaN on the others), and if `centred` is ``(C, H, W)`` the
     centred windows' envelopes and offsets (`centred_offset` ``(H, W)``)."""
-    keep_centred = centred.shape[1] > 1
+    keep_centred = centred_offset.shape[0] == img.shape[0] and centred_offset.shape[1] == img.shape[1]
     for r in lines:
         measure = scale.shape[0] > 1 and r % FOLLOW_SCALE_STEP == 0
         if scale.shape[0] > 1 and not measure:
