@@ -6,7 +6,7 @@ import threading
 
 import numpy as np
 
-from sliscan._threads import THREADS_ENV, in_parallel, over_rows, pool
+from sliscan._threads import THREADS_ENV, default_workers, in_parallel, over_rows, pool, side_by_side
 
 
 def test_in_parallel_keeps_the_order_and_uses_one_kept_pool():
@@ -53,3 +53,52 @@ def test_a_forked_child_starts_its_own_pool():
     os.close(write)
     _, status = os.waitpid(child, 0)
     assert status == 0 and os.read(read, 2) == bytes([3, 4])
+
+
+def test_side_by_side_runs_each_call_in_its_own_thread_with_its_share_of_the_workers(monkeypatch):
+    """Two chains at once, each seeing half the workers and feeding pools of its own."""
+    monkeypatch.setenv(THREADS_ENV, "4")
+    barrier = threading.Barrier(2, timeout=10)  # both chains must be running at the same time
+
+    def chain(k):
+        barrier.wait()
+        workers = default_workers()
+        threads = in_parallel(lambda j: threading.current_thread(), range(8))
+        return k, threading.current_thread(), workers, set(threads)
+
+    results = side_by_side([lambda: chain(0), lambda: chain(1)])
+    assert [k for k, *_ in results] == [0, 1]
+    (_, thread_a, workers_a, pool_a), (_, thread_b, workers_b, pool_b) = results
+    assert thread_a is not thread_b and threading.current_thread() not in (thread_a, thread_b)
+    assert workers_a == workers_b == 2
+    # each chain's stages on 2 threads of a pool of its own
+    assert 1 <= len(pool_a) <= 2 and 1 <= len(pool_b) <= 2 and not pool_a & pool_b
+    assert thread_a not in pool_a and thread_b not in pool_b
+    assert default_workers() == 4  # the shares end with the chains
+
+
+def test_side_by_side_runs_in_turn_with_one_worker_or_inside_a_pool_task(monkeypatch):
+    here = threading.current_thread()
+    monkeypatch.setenv(THREADS_ENV, "1")
+    assert side_by_side([lambda: threading.current_thread(), lambda: threading.current_thread()]) == [here, here]
+    monkeypatch.setenv(THREADS_ENV, "2")
+    inner = in_parallel(lambda k: (threading.current_thread(), side_by_side([threading.current_thread] * 2)),
+                        range(2))
+    assert all(chains == [task, task] for task, chains in inner)
+
+
+def test_side_by_side_gives_each_call_at_least_one_worker_and_passes_errors_on(monkeypatch):
+    monkeypatch.setenv(THREADS_ENV, "2")
+    assert side_by_side([default_workers] * 3) == [1, 1, 1]
+    monkeypatch.setenv(THREADS_ENV, "5")
+    assert sorted(side_by_side([default_workers] * 2)) == [2, 3]
+
+    def fails():
+        raise ValueError("in a chain")
+
+    try:
+        side_by_side([default_workers, fails])
+    except ValueError as error:
+        assert str(error) == "in a chain"
+    else:
+        raise AssertionError("the chain's error was lost")

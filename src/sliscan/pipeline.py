@@ -8,6 +8,7 @@ pattern (``pmp``, ``graycode``) goes the same way from a whole capture sequence:
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sliscan import fastscan, fringe
-from sliscan._threads import over_rows
+from sliscan._threads import over_rows, side_by_side
 from sliscan._validate import InputError, check_image
 from sliscan.baseband import Baseband, BasebandPlan, demodulate_baseband, normalise_lines
 from sliscan.decode import Decoded, decode
@@ -442,18 +443,25 @@ class Scanner:
         t0 = time.perf_counter()
         demod, carriers = self.demodulate(image)
         t1 = time.perf_counter()
-        stripes = decode(demod, self.spec, **self.decode_options)
+        stripe_px = self.spec.phase_lines / self.spec.stripes / carriers.scale
+
+        def decoded_lines(envelopes: Demodulated) -> tuple[Decoded, Decoded | None]:
+            """One set of envelopes decoded, and its lines between the located stripe borders."""
+            found = decode(envelopes, self.spec, **self.decode_options)
+            if not self.interpolate_stripes:
+                return found, None
+            return found, interpolate_lines(found, self.spec, stripe_px=stripe_px, offset=envelopes.offset,
+                                            window=carriers.window)
+
+        # the chosen windows' decoding and the centred ones' are independent: side by side
+        sources = [demod] if demod.centred is None else [demod, demod.centred]
+        (stripes, lines), *centred = side_by_side([functools.partial(decoded_lines, s) for s in sources])
+        if lines is not None and centred:
+            lines = prefer_centred(lines, centred[0][1], demod.centred.offset, self.spec, stripe_px=stripe_px,
+                                   window=carriers.window)
+        del centred  # its decoding's frames, before the phase channel's
         decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image, **self.fringe_options)
-        if self.interpolate_stripes:
-            stripe_px = self.spec.phase_lines / self.spec.stripes / carriers.scale
-            lines = interpolate_lines(stripes, self.spec, stripe_px=stripe_px, offset=demod.offset,
-                                      window=carriers.window)
-            if demod.centred is not None:
-                centred = decode(demod.centred, self.spec, **self.decode_options)
-                centred_lines = interpolate_lines(centred, self.spec, stripe_px=stripe_px,
-                                                  offset=demod.centred.offset, window=carriers.window)
-                lines = prefer_centred(lines, centred_lines, demod.centred.offset, self.spec, stripe_px=stripe_px,
-                                       window=carriers.window)
+        if lines is not None:
             decoded = prefer_borders(decoded, lines.proj_map, self.spec) if self.spec.phase_carriers else lines
         t2 = time.perf_counter()
         points, valid = self._measured(decoded.proj_map, decoded.valid, self.spec.orientation, carriers.window)
