@@ -403,3 +403,26 @@ def test_albedo_steps_read_both_ways_find_more_true_edges():
     (found_one, _), (found_two, stray_two) = found_and_stray(one_way), found_and_stray(two_ways)
     assert found_two >= found_one + 0.015
     assert stray_two <= 0.025
+
+
+def test_the_scale_map_is_the_mean_of_the_measurements_in_its_box():
+    """`scale_map` against a direct sum over each box, the frame's ends repeated (sparse
+    measurements, as `_fit_line` leaves them: every 8th line and pixel, some missing)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    from sliscan.demodulate import FOLLOW_SCALE_LINES, FOLLOW_SCALE_WINDOWS, Carriers, scale_map
+
+    rng = np.random.default_rng(3)
+    scale = np.full((61, 150), np.nan, np.float32)
+    scale[::8, ::8] = rng.normal(0.0, 0.02, scale[::8, ::8].shape)
+    scale[rng.random(scale.shape) < 0.3] = np.nan
+    carriers = Carriers(frequencies=np.array([0.1, 0.2]), scale=1.0, window=10)
+    across, along = FOLLOW_SCALE_LINES, FOLLOW_SCALE_WINDOWS * 10
+    finite = np.isfinite(scale)
+    padded = [np.pad(a, ((across // 2, across - across // 2 - 1), (along // 2, along - along // 2 - 1)), mode="edge")
+              for a in (np.where(finite, scale, 0.0).astype(np.float64), finite.astype(np.float64))]
+    total, count = (sliding_window_view(a, (across, along)).sum(axis=(-2, -1)) for a in padded)
+    error, measured = scale_map(scale, carriers)
+    assert np.array_equal(measured, count > 0) and 0 < measured.mean() < 1  # some boxes hold none
+    np.testing.assert_allclose(error[measured], total[measured] / count[measured], rtol=1e-9, atol=1e-15)
+    assert (error[~measured] == 0).all()
