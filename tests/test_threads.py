@@ -85,6 +85,9 @@ def test_side_by_side_runs_in_turn_with_one_worker_or_inside_a_pool_task(monkeyp
     inner = in_parallel(lambda k: (threading.current_thread(), side_by_side([threading.current_thread] * 2)),
                         range(2))
     assert all(chains == [task, task] for task, chains in inner)
+    monkeypatch.setenv(THREADS_ENV, "8")  # a chain's own side_by_side: in turn, in the chain's thread
+    outer = side_by_side([lambda: (threading.current_thread(), side_by_side([threading.current_thread] * 2))] * 2)
+    assert all(chains == [chain, chain] for chain, chains in outer)
 
 
 def test_side_by_side_gives_each_call_at_least_one_worker_and_passes_errors_on(monkeypatch):

@@ -87,14 +87,16 @@ def over_rows(kernel: Callable[[NDArray[np.intp]], object], height: int, workers
 def side_by_side(calls: Sequence[Callable[[], R]]) -> list[R]:
     """``[call() for call in calls]``, the calls at once, each in its own thread with its own
     share of `default_workers` (and its own pools) for the parallel stages it runs; in turn, in
-    this thread, with one worker or from inside a pool's task.
+    this thread, with one worker or from inside a pool's task or another chain (whose threads
+    a nested call could wait on forever).
 
     On 2 cores a scan's two decodings (`sliscan.pipeline.Scanner`) take 1.1-1.2 s side by side
     at 5 MP against 1.6 s in turn with both cores each (README, "Speed"): between the kernels
     each runs numpy steps on one core.
     """
     workers = default_workers()
-    if len(calls) <= 1 or workers <= 1 or threading.current_thread().name.startswith(_PREFIX):
+    nested = threading.current_thread().name.startswith(_PREFIX) or getattr(_share, "workers", 0)
+    if len(calls) <= 1 or workers <= 1 or nested:
         return [call() for call in calls]
     shares = [len(part) for part in np.array_split(np.arange(max(workers, len(calls))), len(calls))]
 
