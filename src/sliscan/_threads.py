@@ -98,7 +98,7 @@ def side_by_side(calls: Sequence[Callable[[], R]]) -> list[R]:
     nested = threading.current_thread().name.startswith(_PREFIX) or getattr(_share, "workers", 0)
     if len(calls) <= 1 or workers <= 1 or nested:
         return [call() for call in calls]
-    shares = [len(part) for part in np.array_split(np.arange(max(workers, len(calls))), len(calls))]
+    shares = [max(1, workers // len(calls) + (i < workers % len(calls))) for i in range(len(calls))]
 
     def run(index: int) -> R:
         _share.workers, _share.group = shares[index], index + 1
