@@ -278,8 +278,8 @@ class Scanner:
     centred_borders : bool
         Method ``window``, with `interpolate_stripes`: where a border crosses the carriers
         obliquely, place it from the centred windows' envelopes as well (`sliscan.staircase.
-        prefer_centred`: a second decoding and interpolation, about 0.9 s more at 5 MP on 2
-        cores; README, "Removing the staircase": medians 10-40 % lower on spheres and on
+        prefer_centred`: a second decoding and interpolation, run side by side with the first
+        (`sliscan._threads.side_by_side`), about 0.4 s more at 5 MP on 2 cores; README, "Removing the staircase": medians 10-40 % lower on spheres and on
         surfaces turned about the phase direction).  On by default; false: the chosen windows'
         borders only.
     albedo : str or None
