@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import struct
+import zipfile
 
 import cv2
 import numpy as np
@@ -13,11 +15,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 from plyfile import PlyData
 
-from sliscan import Calibration, Device, InputError, ScanResult
+from sliscan import Calibration, Device, InputError, ScanResult, _threads
 from sliscan._validate import to_uint8
 from sliscan.formats.calibration import load_calibration, read_matrix_txt, write_matrix_txt
 from sliscan.formats.mat5 import mat5_paths, read_mat5, write_mat5
-from sliscan.formats.npz import ARRAY_DTYPES, read_scan_npz, write_scan_npz
+from sliscan.formats import npz
+from sliscan.formats.npz import ARRAY_DTYPES, read_scan_npz, write_npz_arrays, write_scan_npz
 from sliscan.formats.ply import read_point_cloud, write_point_cloud
 from sliscan.formats.premat5 import (phase_to_pixel, pixel_to_phase, read_a, read_byt, read_g, write_a, write_byt,
                                      write_g)
@@ -398,3 +401,133 @@ def test_npz_errors(tmp_path, rng):
         read_scan_npz(tmp_path / "bad.npz")
     with pytest.raises(InputError, match=r"missing\.npz: cannot read"):
         read_scan_npz(tmp_path / "missing.npz")
+
+
+def npy_bytes(array) -> bytes:
+    """What `np.lib.format.write_array` writes for `array` (a member of `np.savez`)."""
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.asarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
+def read_npz_arrays_plain(path) -> dict[str, np.ndarray]:
+    """Every array of an npz, read by plain numpy."""
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def odd_arrays(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Arrays of every layout the npz writer must store as numpy does."""
+    grid = rng.normal(size=(40, 30)).astype(np.float32)
+    grid[::3, ::7] = np.nan
+    return {"c": grid, "fortran": np.asfortranarray(grid), "strided": grid[::2, ::-3], "scalar": np.array(2.5),
+            "empty": np.zeros((0, 4), np.int16), "text": np.array('{"a": 1}'), "big_endian": grid.astype(">f8"),
+            "record": np.zeros(5, dtype=[("x", "<f4"), ("n", "<i2")]), "when": np.arange(3).astype("M8[s]"),
+            "flags": rng.random((7, 3)) < 0.5}
+
+
+def test_npz_plain_numpy_reads_the_scan_nans_included(tmp_path, rng):
+    result = make_result(rng)
+    assert np.isnan(result.points).any() and np.isnan(result.proj_map).any()
+    write_scan_npz(tmp_path / "scan.npz", result)
+    with zipfile.ZipFile(tmp_path / "scan.npz") as archive:
+        assert archive.testzip() is None
+        assert [i.filename for i in archive.infolist()] == [f"{n}.npy" for n in (*ARRAY_DTYPES, "timings")]
+        assert all(i.compress_type == zipfile.ZIP_DEFLATED for i in archive.infolist())
+    with np.load(tmp_path / "scan.npz", allow_pickle=False) as data:
+        for name, dtype in ARRAY_DTYPES.items():
+            assert data[name].dtype == dtype
+            np.testing.assert_array_equal(data[name], getattr(result, name))  # NaN where NaN
+
+
+def test_npz_members_are_the_bytes_numpy_writes(tmp_path, rng):
+    result = make_result(rng)
+    write_scan_npz(tmp_path / "scan.npz", result)
+    arrays = odd_arrays(rng)
+    write_npz_arrays(tmp_path / "odd.npz", arrays)
+    with zipfile.ZipFile(tmp_path / "scan.npz") as archive:
+        for name, dtype in ARRAY_DTYPES.items():
+            assert archive.read(f"{name}.npy") == npy_bytes(np.asarray(getattr(result, name), dtype=dtype))
+        assert archive.read("timings.npy") == npy_bytes(np.array(json.dumps(result.timings)))
+    with zipfile.ZipFile(tmp_path / "odd.npz") as archive:
+        assert archive.testzip() is None
+        for name, array in arrays.items():
+            assert archive.read(f"{name}.npy") == npy_bytes(array), name
+    with np.load(tmp_path / "odd.npz", allow_pickle=False) as data:
+        for name, array in arrays.items():
+            assert data[name].dtype == array.dtype
+            np.testing.assert_array_equal(data[name], array)
+    with pytest.raises(ValueError, match="without pickle"):
+        write_npz_arrays(tmp_path / "object.npz", {"o": np.array([None, 1])})
+    assert_only(tmp_path, ["scan.npz", "odd.npz"])
+
+
+def test_npz_member_spanning_many_chunks(tmp_path, rng, monkeypatch):
+    monkeypatch.setattr(npz, "_CHUNK_BYTES", 1000)  # under the 32 KiB window: each chunk's dictionary is short
+    noise = rng.normal(size=(300, 200)).astype(np.float32)
+    arrays = {"noise": noise, "ramp": np.tile(np.arange(200, dtype=np.float32), (300, 1)), "tiny": np.arange(3)}
+    write_npz_arrays(tmp_path / "chunks.npz", arrays)
+    with zipfile.ZipFile(tmp_path / "chunks.npz") as archive:
+        assert archive.testzip() is None
+        for name, array in arrays.items():
+            assert archive.read(f"{name}.npy") == npy_bytes(array)
+        ramp = archive.getinfo("ramp.npy")
+        assert ramp.file_size > 200 * npz._CHUNK_BYTES
+        assert ramp.compress_size < ramp.file_size / 20  # its matches reach back across chunks
+    got = read_npz_arrays_plain(tmp_path / "chunks.npz")
+    for name, array in arrays.items():
+        np.testing.assert_array_equal(got[name], array)
+
+
+def test_npz_same_file_with_one_and_two_workers(tmp_path, rng, monkeypatch):
+    monkeypatch.setattr(npz, "_CHUNK_BYTES", 4096)
+    monkeypatch.setattr(npz, "_dos_timestamp", lambda: (0x6000, 0x5A21))  # both files the same second
+    pools = []
+    real_pool = _threads.pool
+    monkeypatch.setattr(_threads, "pool", lambda workers, group=0: pools.append(workers) or real_pool(workers, group))
+    arrays = {**odd_arrays(rng), "noise": rng.normal(size=(100, 120)).astype(np.float32)}
+    files = []
+    for threads in ("1", "2"):
+        monkeypatch.setenv("SLISCAN_THREADS", threads)
+        files.append(write_npz_arrays(tmp_path / f"w{threads}.npz", arrays).read_bytes())
+    assert pools == [2]  # one worker deflates in this thread, two on the pool
+    assert files[0] == files[1]
+    with zipfile.ZipFile(io.BytesIO(files[1])) as archive:
+        assert archive.testzip() is None
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_npz_write_failure_leaves_nothing_behind(tmp_path, rng, monkeypatch, threads):
+    monkeypatch.setenv("SLISCAN_THREADS", threads)
+    monkeypatch.setattr(npz, "_CHUNK_BYTES", 64)
+
+    def fail(header, data):
+        raise OSError("no space left")
+
+    monkeypatch.setattr(npz, "_crc32", fail)
+    with pytest.raises(OSError, match="no space left"):
+        write_scan_npz(tmp_path / "scan.npz", make_result(rng))
+    assert_only(tmp_path, [])
+
+
+def test_npz_zip64_records(tmp_path, rng, monkeypatch):
+    # Every size, offset and count over the limits: the zip64 extra fields and end records.
+    monkeypatch.setattr(npz, "_ZIP64_LIMIT", 0)
+    monkeypatch.setattr(npz, "_ZIP_FILECOUNT_LIMIT", 0)
+    result = make_result(rng)
+    write_scan_npz(tmp_path / "scan.npz", result)
+    with zipfile.ZipFile(tmp_path / "scan.npz") as archive:
+        assert archive.testzip() is None
+    got = read_scan_npz(tmp_path / "scan.npz")
+    np.testing.assert_array_equal(got.points, result.points)
+    assert got.timings == result.timings
+    raw = (tmp_path / "scan.npz").read_bytes()
+    end64, locator, end = raw[-98:-42], raw[-42:-22], raw[-22:]
+    assert end64[:4] == b"PK\x06\x06" and locator[:4] == b"PK\x06\x07" and end[:4] == b"PK\x05\x06"
+    count, size, start = struct.unpack("<3Q", end64[32:56])
+    assert count == 7 and start + size == len(raw) - 98
+    assert struct.unpack("<4H2L", end[4:20]) == (0, 0, count, count, size, start)  # they fit, as zipfile writes
+    second = start + 46 + len("points.npy") + 4 + 8 * 2  # after the first record (its offset 0 fits)
+    assert raw[second:second + 4] == b"PK\x01\x02"
+    assert struct.unpack("<2L", raw[second + 20:second + 28]) == (0xFFFFFFFF, 0xFFFFFFFF)
+    assert struct.unpack("<L", raw[second + 42:second + 46]) == (0xFFFFFFFF,)  # offset in the zip64 field

@@ -3,10 +3,12 @@
 import os
 import signal
 import threading
+import time
 
 import numpy as np
 
-from sliscan._threads import THREADS_ENV, default_workers, in_parallel, over_rows, pool, side_by_side
+from sliscan._threads import (THREADS_ENV, default_workers, in_parallel, over_rows, pool, results_in_order,
+                              side_by_side)
 
 
 def test_in_parallel_keeps_the_order_and_uses_one_kept_pool():
@@ -24,6 +26,56 @@ def test_a_task_that_runs_in_parallel_itself_runs_its_items_in_its_own_thread():
                         range(4), workers=2)
     for inner in outer:
         assert [j for j, _ in inner] == [0, 1, 2] and len({name for _, name in inner}) == 1
+
+
+def test_results_in_order_come_in_the_tasks_order_while_the_later_ones_run():
+    """Results in order although the first task finishes last, computed ahead on the pool."""
+    started = []
+
+    def task(k, delay):
+        def run():
+            started.append(k)
+            time.sleep(delay)
+            return k, threading.current_thread().name
+        return run
+
+    results = results_in_order([task(0, 0.2), task(1, 0.0), task(2, 0.0)], workers=2)
+    first = next(results)
+    assert first[0] == 0 and sorted(started) == [0, 1, 2]  # the others ran while the first was awaited
+    assert [k for k, _ in [first, *results]] == [0, 1, 2]
+    assert first[1].startswith("sliscan-worker")
+
+
+def test_results_in_order_with_one_worker_run_each_task_when_asked_for():
+    """One worker: each task in this thread, only when its result is asked for; closing the
+    iterator leaves the rest unrun."""
+    ran = []
+    results = results_in_order([lambda k=k: ran.append(k) or threading.current_thread().name for k in range(3)],
+                               workers=1)
+    assert next(results) == threading.current_thread().name and ran == [0]
+    results.close()
+    assert ran == [0]
+
+
+def test_closing_results_in_order_cancels_the_tasks_not_started():
+    gate = threading.Event()
+    ran = []
+
+    def task(k):
+        def run():
+            if k:
+                gate.wait(5)
+            ran.append(k)
+            return k
+        return run
+
+    results = results_in_order([task(k) for k in range(20)], workers=2)
+    assert next(results) == 0  # every task submitted; two of the rest are running, held by the gate
+    results.close()  # the ones queued behind them are dropped
+    gate.set()
+    for _ in range(2):  # the pool finishes what was running before these
+        pool(2).submit(lambda: None).result()
+    assert sorted(ran) in ([0, 1, 2], [0, 1])
 
 
 def test_over_rows_visits_every_row_once(monkeypatch):

@@ -8,15 +8,18 @@ threads are started once per worker count and kept (`pool`): starting two thread
 Two independent chains of stages (a scan's two decodings) run faster side by side, each with
 its share of the workers (`side_by_side`), than one after the other with all of them: the
 numpy steps between the kernels run on one core, and the other chain's work fills the rest.
+Other work that zlib or numpy does without the GIL (deflating an npz file's chunks) streams
+its results in order while the later ones run (`results_in_order`).
 """
 
 from __future__ import annotations
 
+import collections
 import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterable, Sequence, TypeVar
+from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,9 +69,36 @@ def in_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int | None = 
     (default `default_workers`); in this thread when there is one worker or when this thread
     is itself one of a pool's (a task waiting on its own pool could wait forever)."""
     workers = default_workers() if workers is None else workers
-    if workers <= 1 or threading.current_thread().name.startswith(_PREFIX):
+    if workers <= 1 or _in_pool_task():
         return [fn(item) for item in items]
     return list(pool(workers, getattr(_share, "group", 0)).map(fn, items))
+
+
+def results_in_order(tasks: Sequence[Callable[[], R]], workers: int | None = None) -> Iterator[R]:
+    """The results of `tasks` in order, computed ahead on `workers` threads of `pool` (default
+    `default_workers`), so that the caller can use each (write it out) while the later ones run.
+
+    Every task is submitted at once and its result kept until it is yielded.  With one worker,
+    or from inside a pool's task (as `in_parallel`), each task runs in this thread when its
+    result is asked for.  Closing the iterator cancels the tasks not started.
+    """
+    workers = default_workers() if workers is None else workers
+    if workers <= 1 or _in_pool_task():
+        yield from (task() for task in tasks)
+        return
+    executor = pool(workers, getattr(_share, "group", 0))
+    futures = collections.deque(executor.submit(task) for task in tasks)
+    try:
+        while futures:
+            yield futures.popleft().result()
+    finally:
+        for future in futures:
+            future.cancel()
+
+
+def _in_pool_task() -> bool:
+    """Whether this thread is one of a pool's (a task waiting on its own pool could wait forever)."""
+    return threading.current_thread().name.startswith(_PREFIX)
 
 
 def over_rows(kernel: Callable[[NDArray[np.intp]], object], height: int, workers: int | None = None) -> None:
@@ -95,7 +125,7 @@ def side_by_side(calls: Sequence[Callable[[], R]]) -> list[R]:
     each runs numpy steps on one core.
     """
     workers = default_workers()
-    nested = threading.current_thread().name.startswith(_PREFIX) or getattr(_share, "workers", 0)
+    nested = _in_pool_task() or getattr(_share, "workers", 0)
     if len(calls) <= 1 or workers <= 1 or nested:
         return [call() for call in calls]
     shares = [max(1, workers // len(calls) + (i < workers % len(calls))) for i in range(len(calls))]

@@ -38,12 +38,13 @@ from rich.table import Table
 
 from sliscan import __version__, acquire, batch, evaluate, motion, patterns, photometry, sequences, simulate, viewer
 from sliscan import report as report_module
-from sliscan._validate import InputError, atomic_path, read_image, write_image, write_images
+from sliscan._validate import InputError, read_image, write_image, write_images
 from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
                                calibrate_points, calibrate_target, target_residuals)
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
+from sliscan.formats.npz import write_npz_arrays
 from sliscan.pipeline import DECISIONS, METHODS, ScanChoices, Scanner, ScanStages
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
@@ -307,10 +308,9 @@ def _write_scan(result: ScanResult, *, mat5_prefix: Path | None, ply: Path | Non
 
 
 def _save_truth(path: Path, truth: simulate.GroundTruth) -> None:
-    """Every array of the ground truth in one compressed npz, written atomically."""
-    arrays = {f.name: getattr(truth, f.name) for f in dataclasses.fields(truth)}
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, **arrays)
+    """Every array of the ground truth in one compressed npz, written atomically (the writer of
+    ``--npz`` scans: deflate level 1, on all threads)."""
+    write_npz_arrays(path, {f.name: getattr(truth, f.name) for f in dataclasses.fields(truth)})
 
 
 def _mat5_files(prefix: Path | None) -> list[Path]:
