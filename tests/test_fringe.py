@@ -316,11 +316,16 @@ def test_ramped_windows_follow_a_fringe_that_crosses_the_lines_obliquely():
     # the ramped envelopes are used only on runs of the Gray code's line at least a window from
     # their ends, and there they are the demodulator's
     coarse = np.where(gray.valid, gray.proj_map, np.float32(np.nan))
-    envelopes, offset = fringe.phase_envelopes(demod, coarse, spec, carriers, max_jump=1.5 * 768 / 15)
+    envelopes, variance, offset = fringe.phase_envelopes(demod, coarse, spec, carriers, max_jump=1.5 * 768 / 15)
     own = demod.amplitude[spec.bits:]
     used = np.all(envelopes == demod.ramped, axis=0) & np.any(envelopes != own, axis=0)
     assert np.all(fringe.inner_pixels(coarse, jump=1.5 * 768 / 15, reach=carriers.window)[used])
     assert np.all(offset[used] == 0) and 0.2 < used[gray.valid].mean() < 1
+    # each envelope component's noise variance: the one-period fit's, half that over the ramped
+    # window of two periods
+    mine = np.all(envelopes == own, axis=0)
+    np.testing.assert_allclose(variance[used], demod.noise[used] ** 2 / 2, rtol=1e-6)
+    np.testing.assert_allclose(variance[mine & ~used], demod.noise[mine & ~used] ** 2, rtol=1e-6)
 
 
 def test_a_plane_turned_60_degrees_keeps_its_gray_code():
@@ -366,6 +371,42 @@ def test_unweighted_phasors_sum_to_the_phase_at_the_middle_of_their_box():
     assert abs(bias[False]) < 1e-4
     assert bias[True] == pytest.approx(0.02 * 0.01 * (box**2 - 1) / 12, rel=0.05)
 
+
+
+def test_debiased_envelopes_take_the_noise_out_of_a_boxs_fringe_phase(rng):
+    # Three envelopes of a fringe at 12 phases, each the magnitude of a complex amplitude with
+    # Gaussian noise of variance var per component (the peak envelope 8 deviations high): the
+    # weakest reads high (Rician), so the box mean's phase leans toward the other two.
+    # Measured: 0.041 rad RMS over the phases as they are, 0.015 debiased.
+    spec = patterns.phase_spec((1024, 768))
+    shifts, draws, sd = phase_shifts(spec), 20_000, 1 / 8
+    errors = {False: [], True: []}
+    for phase in np.linspace(0, 2 * np.pi, 12, endpoint=False):
+        true = 0.5 * (1 + np.cos(phase - shifts))
+        noisy = true[:, None] * np.exp(1j * rng.uniform(0, 2 * np.pi, (3, draws))) + sd * (
+            rng.normal(size=(3, draws)) + 1j * rng.normal(size=(3, draws)))
+        envelopes = np.abs(noisy).astype(np.float32)[:, :, None]  # (N, H, W) = (3, draws, 1)
+        for debias in (False, True):
+            used = fringe.debiased(envelopes, np.full((draws, 1), sd**2, np.float32)) if debias else envelopes
+            mean = used[:, :, 0].mean(axis=1)
+            errors[debias].append(np.angle(np.sum(mean * np.exp(1j * shifts)) * np.exp(-1j * phase)))
+    rms = {debias: np.sqrt(np.mean(np.square(e))) for debias, e in errors.items()}
+    assert rms[False] > 0.03 and rms[True] < 0.5 * rms[False]
+    assert fringe.debiased(envelopes, None) is envelopes
+
+
+def test_phasors_take_the_sum_from_the_totals_and_the_phase_from_the_envelopes(rng):
+    spec = patterns.phase_spec((1024, 768))
+    n, shape = len(spec.phase_carriers), (5, 7)
+    demod = SimpleNamespace(amplitude=np.zeros((spec.bits + n, *shape), np.float32),
+                            dc=np.full(shape, 0.4, np.float32))
+    levels = fringe.ChannelLevels(gain=np.full(n, 0.3), offset=np.full(n, 0.01), crosstalk=np.zeros(n))
+    valid, stripes = np.ones(shape, bool), np.full(shape, -1, np.int16)
+    raw = rng.uniform(0.01, 0.1, (n, *shape)).astype(np.float32)
+    unbiased = (0.8 * raw).astype(np.float32)
+    both = fringe.phasors(demod, valid, levels, spec, stripes, envelopes=unbiased, totals=raw)
+    np.testing.assert_array_equal(both[:2], fringe.phasors(demod, valid, levels, spec, stripes, envelopes=unbiased)[:2])
+    np.testing.assert_array_equal(both[2], fringe.phasors(demod, valid, levels, spec, stripes, envelopes=raw)[2])
 
 def test_boxes_along_the_phase_reach_across_a_stripe_borders_undecoded_rows():
     # a fringe rising 0.02 rad per row; rows 100-101 undecoded (a Gray code border): boxes of

@@ -25,7 +25,8 @@ Stages, each its own function:
    (a DC weight would move each box's phase toward its brighter side), from the envelopes of
    `phase_envelopes`: away from edges those of the demodulator's two-period windows with a
    ramp per phase carrier, which follow a fringe that crosses the carriers' lines obliquely
-   (the one-period fits leak its change along the window into each other).
+   (the one-period fits leak its change along the window into each other); each less the bias
+   its noise gives it (`debiased`), except in the fringe's sum, which the tests divide by.
 3. `smooth_phasors`: the phasors summed over a box along both image axes, restricted to runs of
    valid pixels whose stripe changes by at most 1.5 stripes from pixel to pixel (so the box
    does not reach across depth edges).  Along the carriers the box is one demodulation window
@@ -286,17 +287,17 @@ def _phasor_parts(levels: NDArray[np.floating], shifts: NDArray[np.float64]) -> 
 
 
 @numba.njit(cache=True, nogil=True)
-def _phasor_rows(amplitude: NDArray[np.float32], first: int, dc: NDArray[np.float32], valid: NDArray[np.bool_],
-                 stripe: NDArray[np.int16], gain: NDArray[np.float64], offset: NDArray[np.float64],
-                 mix: NDArray[np.float64], shift: NDArray[np.float64], cos_shift: NDArray[np.float64],
-                 sin_shift: NDArray[np.float64], weighted: bool, rows: NDArray[np.intp],
-                 out: NDArray[np.float32]) -> None:
-    """`phasors` on the given `rows`: `amplitude` ``(C, H, W)`` with the phase carriers from
-    index `first`; `mix`, `shift` from `_unmixing`; `out` ``(3, H, W)``, times the DC if
-    `weighted`."""
+def _phasor_rows(amplitude: NDArray[np.float32], totals: NDArray[np.float32], first: int, dc: NDArray[np.float32],
+                 valid: NDArray[np.bool_], stripe: NDArray[np.int16], gain: NDArray[np.float64],
+                 offset: NDArray[np.float64], mix: NDArray[np.float64], shift: NDArray[np.float64],
+                 cos_shift: NDArray[np.float64], sin_shift: NDArray[np.float64], weighted: bool,
+                 rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+    """`phasors` on the given `rows`: `amplitude` and `totals` ``(C, H, W)`` with the phase
+    carriers from index `first`; `mix`, `shift` from `_unmixing`; `out` ``(3, H, W)``, times
+    the DC if `weighted`."""
     n = gain.size
     identity = mix.shape[0] - 1
-    level = np.empty(n)
+    level, total = np.empty(n), np.empty(n)
     for r in rows:
         for x in range(dc.shape[1]):
             if not valid[r, x]:
@@ -306,21 +307,23 @@ def _phasor_rows(amplitude: NDArray[np.float32], first: int, dc: NDArray[np.floa
             st = stripe[r, x] if 0 <= stripe[r, x] < identity else identity
             for k in range(n):
                 level[k] = (amplitude[first + k, r, x] / d - offset[k]) / gain[k] - shift[st, k]
+                total[k] = (totals[first + k, r, x] / d - offset[k]) / gain[k] - shift[st, k]
             c = s = t = 0.0
             for k in range(n):
-                fringe = 0.0
+                fringe = unmixed = 0.0
                 for j in range(n):
                     fringe += mix[st, k, j] * level[j]
+                    unmixed += mix[st, k, j] * total[j]
                 c += fringe * cos_shift[k]
                 s += fringe * sin_shift[k]
-                t += fringe
+                t += unmixed
             w = dc[r, x] if weighted else 1.0
             out[0, r, x], out[1, r, x], out[2, r, x] = c * w, s * w, t * w
 
 
 def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels, spec: PatternSpec,
-            stripes: NDArray[np.int16], *, weighted: bool = False,
-            envelopes: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+            stripes: NDArray[np.int16], *, weighted: bool = False, envelopes: NDArray[np.float32] | None = None,
+            totals: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """The fringe's phasor at every pixel: ``(3, H, W)`` float32 = (real, imaginary, sum of
     the fringes), 0 where not `valid`; each times the local DC if `weighted`.
 
@@ -339,14 +342,18 @@ def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels,
     by more than 0.004 per pixel along the phase direction (unweighted: -0.01 / +0.08), and
     the median error 0.32 lines (unweighted 0.24; README, "Sub-stripe depth from one frame").
 
-    `envelopes` ``(N, H, W)``: the phase carriers' envelopes to use (`phase_envelopes`), by
-    default `demod`'s.
+    `envelopes` ``(N, H, W)``: the phase carriers' envelopes to use (`phase_envelopes`,
+    `debiased`), by default `demod`'s; `totals` ``(N, H, W)``: the envelopes the sum is taken
+    from, by default the same (`refine` gives the debiased envelopes for the phasor and the
+    envelopes as they are for the sum, so that its modulation tests keep their meaning).
     """
     shifts = phase_shifts(spec)
     mix, shift = _unmixing(levels, *crosstalk(spec))
     out = np.empty((3, *demod.dc.shape), dtype=np.float32)
     amplitude, first = (demod.amplitude, spec.bits) if envelopes is None else (envelopes, 0)
-    args = (np.ascontiguousarray(amplitude), first, np.ascontiguousarray(demod.dc), np.ascontiguousarray(valid),
+    totals = amplitude if totals is None else totals
+    args = (np.ascontiguousarray(amplitude), np.ascontiguousarray(totals), first, np.ascontiguousarray(demod.dc),
+            np.ascontiguousarray(valid),
             np.ascontiguousarray(stripes, dtype=np.int16), levels.gain.astype(np.float64),
             levels.offset.astype(np.float64), mix, shift, np.cos(shifts), np.sin(shifts), weighted)
     over_rows(lambda rows: _phasor_rows(*args, rows, out), out.shape[1])
@@ -1085,13 +1092,16 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     along_phase, radius_phase = max(1, int(round(fringe_cam / 8))) | 1, max(1, int(round(fringe_cam / 4)))
     min_slope = RECENTRE_MIN_CHANGE / carriers.window * 2 * np.pi / spec.fringe_period  # radians per camera pixel
     coarse = frame(np.where(decoded.valid, decoded.proj_map, np.float32(np.nan)))
-    envelopes, offset = (phase_envelopes(demod, coarse, spec, carriers, max_jump=max_jump) if ramped_windows
-                         else (demod.amplitude[spec.bits:spec.bits + n], demod.offset))
+    envelopes, variance, offset = phase_envelopes(demod, coarse, spec, carriers, max_jump=max_jump,
+                                                  ramped=ramped_windows)
+    unbiased = debiased(envelopes, variance)
+    del variance
     sample, usable, sample_stripes = level_samples(demod, decoded.valid, decoded.stripe, spec,
                                                    sample_step(decoded.valid, LEVEL_SAMPLES),
-                                                   along_phase if average_levels else 1, envelopes)
+                                                   along_phase if average_levels else 1, unbiased)
     levels = channel_levels(sample, usable, spec, stripes=sample_stripes if unmix else None)
-    phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe, weighted=dc_weights, envelopes=envelopes)
+    phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe, weighted=dc_weights, envelopes=unbiased,
+                     totals=envelopes)
     phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor
     offset = None if offset is None or not recentre_phase else frame(offset)
     phasor = with_positions(phasor, offset)
@@ -1139,7 +1149,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         new = frame(joins) & ~decoded.valid  # the others have their phasors already
         stripes = np.full(new.shape, -1, np.int16)
         stripes[new] = stripe_of_line(frame(mean)[new], spec)
-        extra = phasors(demod, new, levels, spec, stripes, weighted=dc_weights, envelopes=envelopes)
+        extra = phasors(demod, new, levels, spec, stripes, weighted=dc_weights, envelopes=unbiased, totals=envelopes)
         extra = np.stack([frame(p) for p in extra]) if spec.orientation != "rows" else extra
         phasor += with_positions(extra, offset)
         del extra
@@ -1270,11 +1280,14 @@ def inner_pixels(line: NDArray[np.float32], *, jump: float, reach: int) -> NDArr
 
 
 def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: PatternSpec, carriers: Carriers, *,
-                    max_jump: float) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
-    """The phase carriers' envelopes ``(N, H, W)`` and window offsets ``(H, W)`` (camera
-    orientation) that `refine` decodes: `Demodulated.ramped` where its window of two spacing
-    periods lies on one run of `coarse` (the Gray code's line, carriers along axis 1; runs
-    as in `run_lengths` with `max_jump`), the one-period fit's elsewhere.
+                    max_jump: float, ramped: bool = True
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None, NDArray[np.float32] | None]:
+    """The phase carriers' envelopes ``(N, H, W)``, the noise variance of each of their two
+    components ``(H, W)`` (None if `demod` has no noise) and the window offsets ``(H, W)``
+    (camera orientation) that `refine` decodes: `Demodulated.ramped` where its window of two
+    spacing periods lies on one run of `coarse` (the Gray code's line, carriers along axis 1;
+    runs as in `run_lengths` with `max_jump`), the one-period fit's elsewhere (everywhere if not
+    `ramped`).
 
     Where the fringe crosses the carriers' lines obliquely (a surface turned about the
     phase direction: a sphere's left and right sides), each phase carrier's envelope changes
@@ -1283,17 +1296,41 @@ def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: Patte
     (0.3 projector lines per camera pixel) the line came out 1.9 lines RMS off on a noise-free
     render (README, "Sub-stripe depth from one frame").  The ramped fit takes the change in, and
     its envelopes describe the pixel itself (offset 0).  Next to an edge its longer window
-    would reach across, so there the one-period fit's (one-sided) windows stay."""
+    would reach across, so there the one-period fit's (one-sided) windows stay.  The variance is
+    the one-period fit's (`Demodulated.noise` squared), and over the ramped window, `RAMPED_PERIODS`
+    times as long, that divided by `RAMPED_PERIODS` (its extra ramps barely widen it at the
+    window's centre)."""
     n = len(spec.phase_carriers)
     own = demod.amplitude[spec.bits:spec.bits + n]
-    if demod.ramped is None:
-        return own, demod.offset
+    variance = None if demod.noise is None else np.square(demod.noise)
+    if demod.ramped is None or not ramped:
+        return own, variance, demod.offset
     frame = lambda a: along_carriers(a, spec)  # noqa: E731
     reach = int(round(np.max(carriers.line_windows()) * RAMPED_PERIODS)) // 2
     inner = frame(inner_pixels(coarse, jump=max_jump, reach=reach)) & np.all(np.isfinite(demod.ramped), axis=0)
     envelopes = np.where(inner[None], demod.ramped, own)
+    if variance is not None:
+        variance = np.where(inner, variance / np.float32(RAMPED_PERIODS), variance)
     offset = None if demod.offset is None else np.where(inner, np.float32(0), demod.offset)
-    return envelopes, offset
+    return envelopes, variance, offset
+
+
+def debiased(envelopes: NDArray[np.float32], variance: NDArray[np.float32] | None) -> NDArray[np.float32]:
+    """Envelopes less the bias their noise gives them: ``sqrt(max(E^2 - 2 var, 0))``.
+
+    An envelope is the magnitude of a fitted complex amplitude whose two components each carry
+    noise of variance `var` ``(H, W)`` (image units squared, like ``envelopes ** 2``, ``(N, H,
+    W)``), so its square is ``A^2 + 2 var`` on average: a weak carrier reads high (a Rician
+    bias), most where the fringe puts it near zero, which pulls the fringe's phase toward the
+    others (`refine` takes the fringe's phase and levels from these, its modulation tests from
+    the envelopes as they are).  With the phase carriers' envelopes a median 4-5 noise
+    deviations high on the virtual rig's 1296x972 spheres, this lowered the phase channel's RMS
+    error on 26 of 29 captures, by up to 12 % (README, "Sub-stripe depth from one frame").
+    None: returned as they are.
+    """
+    if variance is None:
+        return envelopes
+    return np.sqrt(np.maximum(np.square(envelopes) - 2 * variance[None], 0)).astype(np.float32, copy=False)
 
 
 def near_jumps(line: NDArray[np.float32], *, radius: int, jump: float) -> NDArray[np.bool_]:
