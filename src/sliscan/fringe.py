@@ -353,8 +353,7 @@ def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels,
     amplitude, first = (demod.amplitude, spec.bits) if envelopes is None else (envelopes, 0)
     totals = amplitude if totals is None else totals
     args = (np.ascontiguousarray(amplitude), np.ascontiguousarray(totals), first, np.ascontiguousarray(demod.dc),
-            np.ascontiguousarray(valid),
-            np.ascontiguousarray(stripes, dtype=np.int16), levels.gain.astype(np.float64),
+            np.ascontiguousarray(valid), np.ascontiguousarray(stripes, dtype=np.int16), levels.gain.astype(np.float64),
             levels.offset.astype(np.float64), mix, shift, np.cos(shifts), np.sin(shifts), weighted)
     over_rows(lambda rows: _phasor_rows(*args, rows, out), out.shape[1])
     return out
