@@ -533,6 +533,47 @@ def test_boxes_at_the_frames_ends_skip_the_windows_clamped_there():
                                   [values[0:6].sum(), values[0:7].sum(), values[0:8].sum()])
 
 
+def _box_reference(values: np.ndarray, coarse: np.ndarray, radius: int, max_jump: float, clamped: int) -> np.ndarray:
+    """`fringe._segment_box` along axis 2 as its docstring says it, pixel by pixel."""
+    out = np.zeros(values.shape)
+    width, length = coarse.shape[1], 2 * radius + 1
+    for r in range(coarse.shape[0]):
+        x = 0
+        while x < width:
+            if not np.isfinite(coarse[r, x]):
+                x += 1
+                continue
+            end = x + 1
+            while end < width and np.isfinite(coarse[r, end]) and abs(coarse[r, end] - coarse[r, end - 1]) <= max_jump:
+                end += 1
+            for p in range(x, end):
+                lo, hi = max(p - radius, x), min(p + radius + 1, end)
+                if x == 0 and lo < clamped and end >= clamped + length:
+                    lo, hi = clamped, clamped + length
+                elif end == width and hi > width - clamped and x <= width - clamped - length:
+                    lo, hi = width - clamped - length, width - clamped
+                out[:, r, p] = values[:, r, lo:hi].astype(np.float64).sum(axis=1)
+            x = end
+    return out
+
+
+@pytest.mark.parametrize("radius, clamped", [(1, 0), (3, 2), (6, 6), (12, 4)])
+def test_box_sums_match_a_direct_sum_over_each_pixels_run(rng, radius, clamped):
+    # runs of every length (NaN gaps and jumps), boxes clipped at their ends, moved inward at
+    # the frame's ends, down the columns as along the rows
+    height, width = 9, 70
+    coarse = np.cumsum(rng.normal(0, 2, (height, width)), axis=1)
+    coarse += 100 * np.cumsum(rng.random((height, width)) < 0.04, axis=1)
+    coarse[rng.random((height, width)) < 0.05] = np.nan
+    coarse[0] = 1.0  # one run across the whole frame
+    coarse, values = coarse.astype(np.float32), rng.normal(0, 1, (3, height, width)).astype(np.float32)
+    got = fringe._segment_box(values, coarse, radius, 10.0, clamped=clamped)
+    np.testing.assert_allclose(got, _box_reference(values, coarse, radius, 10.0, clamped), atol=1e-5)
+    down = fringe._segment_box(np.ascontiguousarray(values.transpose(0, 2, 1)), np.ascontiguousarray(coarse.T),
+                               radius, 10.0, axis=1)
+    np.testing.assert_allclose(down.transpose(0, 2, 1), _box_reference(values, coarse, radius, 10.0, 0), atol=1e-5)
+
+
 def test_recentre_turns_the_frames_ends_back_to_their_pixels():
     # a fringe rising 0.015 rad per pixel along the carriers, seen to the frame's two ends:
     # the first and last 40 pixels' windows (81 long) could not be centred on them and

@@ -370,6 +370,20 @@ def _run_end(coarse: NDArray[np.float32], start: int, max_jump: float) -> int:
     return end
 
 
+@numba.njit(cache=True, inline="always")
+def _clipped_box(cum: NDArray[np.float64], x: int, start: int, end: int, width: int, radius: int,
+                 clamped: int) -> float:
+    """The sum over pixel `x`'s box in `_segment_box_rows` from the run's prefix sums `cum`
+    (``cum[i]``: the sum of the run's first `i` values), for the run ``start .. end - 1``."""
+    length = 2 * radius + 1
+    lo, hi = max(x - radius, start), min(x + radius + 1, end)
+    if start == 0 and lo < clamped and end >= clamped + length:
+        lo, hi = clamped, clamped + length
+    elif end == width and hi > width - clamped and start <= width - clamped - length:
+        lo, hi = width - clamped - length, width - clamped
+    return cum[hi - start] - cum[lo - start]
+
+
 @numba.njit(cache=True, nogil=True)
 def _segment_box_rows(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int, max_jump: float,
                       clamped: int, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
@@ -377,10 +391,11 @@ def _segment_box_rows(values: NDArray[np.float32], coarse: NDArray[np.float32], 
     clipped to the pixel's run: consecutive pixels with a finite `coarse` whose values differ by
     at most `max_jump`.  Pixels outside every run get 0.  A box that reaches into the first or
     last `clamped` pixels of a run at the frame's end is moved inward past them, keeping its
-    length (see `_twiced_box`)."""
+    length (see `_twiced_box`).  The boxes wholly inside their run take a loop of their own,
+    which vectorises."""
     k_count, _, width = values.shape
     length = 2 * radius + 1
-    cum = np.zeros(width + 1)
+    cum = np.zeros((k_count, width + 1))
     for r in rows:
         start = 0
         while start < width:
@@ -390,16 +405,25 @@ def _segment_box_rows(values: NDArray[np.float32], coarse: NDArray[np.float32], 
                 start += 1
                 continue
             end = _run_end(coarse[r], start, max_jump)
+            # the pixels whose box lies inside the run and is not moved at the frame's ends
+            inner_lo, inner_hi = start + radius, end - radius
+            if start == 0 and end >= clamped + length:
+                inner_lo = max(inner_lo, clamped + radius)
+            if end == width and start <= width - clamped - length:
+                inner_hi = min(inner_hi, width - clamped - radius)
+            inner_lo = min(inner_lo, end)
+            inner_hi = max(inner_hi, inner_lo)
+            for x in range(start, end):  # the channels' prefix sums side by side (independent chains)
+                for k in range(k_count):
+                    cum[k, x - start + 1] = cum[k, x - start] + values[k, r, x]
             for k in range(k_count):
-                for x in range(start, end):
-                    cum[x - start + 1] = cum[x - start] + values[k, r, x]
-                for x in range(start, end):
-                    lo, hi = max(x - radius, start), min(x + radius + 1, end)
-                    if start == 0 and lo < clamped and end >= clamped + length:
-                        lo, hi = clamped, clamped + length
-                    elif end == width and hi > width - clamped and start <= width - clamped - length:
-                        lo, hi = width - clamped - length, width - clamped
-                    out[k, r, x] = cum[hi - start] - cum[lo - start]
+                sums = cum[k]
+                for x in range(start, inner_lo):
+                    out[k, r, x] = _clipped_box(sums, x, start, end, width, radius, clamped)
+                for x in range(inner_lo, inner_hi):
+                    out[k, r, x] = sums[x - start + radius + 1] - sums[x - start - radius]
+                for x in range(inner_hi, end):
+                    out[k, r, x] = _clipped_box(sums, x, start, end, width, radius, clamped)
             start = end
 
 
@@ -445,7 +469,7 @@ def _column_runs(coarse: NDArray[np.float32], max_jump: float, c0: int, n: int, 
 
 @numba.njit(cache=True, nogil=True)
 def _segment_box_columns(values: NDArray[np.float32], coarse: NDArray[np.float32], radius: int, max_jump: float,
-                         columns: NDArray[np.intp], out: NDArray[np.float32], block: int = 64) -> None:
+                         columns: NDArray[np.intp], out: NDArray[np.float32], block: int = 256) -> None:
     """`_segment_box_rows` along axis 1 (down the columns) for the given `columns`, without a
     transpose: blocks of columns are walked row by row (loops along a row vectorise), each run's
     sums restarting at its first pixel, so every box sum is the same float64 sum as along a row."""
