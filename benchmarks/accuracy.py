@@ -116,6 +116,8 @@ DECODER_VARIANTS = {
                                                        dict(fringe_options=dict(gap_ring=0))),
     "sliscan 4-bit + phase (one-period windows only)": ("sliscan 4-bit + phase",
                                                          dict(fringe_options=dict(ramped_windows=False))),
+    "sliscan 4-bit + phase (no one-sided ramps)": ("sliscan 4-bit + phase",
+                                                   dict(fringe_options=dict(one_sided_windows=False))),
     "sliscan 4-bit + phase (frame's ends clipped)": ("sliscan 4-bit + phase",
                                                      dict(fringe_options=dict(frame_ends=False))),
     "sliscan 4-bit + phase (strict Gray code)": ("sliscan 4-bit + phase",

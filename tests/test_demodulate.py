@@ -88,6 +88,35 @@ def test_ramped_fit_follows_envelopes_that_change_along_its_window():
     assert np.isfinite(out.ramped[:, :, 39:-40]).all()
 
 
+def test_one_sided_ramped_fit_gives_an_oblique_fringes_phase_at_the_pixel_next_to_an_edge():
+    # the carriers' phases jump at pixel 320 (a depth edge) and the phase channel carries a
+    # fringe whose phase changes by 0.01 rad per pixel along the line (its stripes cross the
+    # line obliquely): next to the edge the one-period windows that fit best end or start at
+    # the pixel and describe the fringe half a window (20 px) away, 0.2 rad off; the two-period
+    # window with a ramp per carrier on the same side, evaluated at the pixel
+    # (`Demodulated.sided`), is not
+    width, x = 640, np.arange(640)
+    shifts = 2 * np.pi * np.arange(3)[:, None] / 3
+    phase = 1.0 + 0.01 * x
+    bits = np.array([0.1, 0.05, 0.08, 0.04])[:, None] * np.ones(width)
+    image, carriers = phase_channel_lines(np.vstack([bits, 0.06 * (1 + 0.8 * np.cos(phase - shifts))]), jump_at=320,
+                                          lines=4)
+    out = demodulate_window(image, carriers, albedo=None, ramped=range(4, 7))
+
+    def error(envelopes: np.ndarray, side: np.ndarray) -> np.ndarray:
+        fringe = np.angle(np.sum(envelopes[:, 0, side] * np.exp(1j * shifts), axis=0))
+        return np.abs(np.angle(np.exp(1j * (fringe - phase[side]))))
+
+    for side in ((x >= 320) & (x < 335), (x >= 305) & (x < 320)):
+        assert np.abs(out.offset[:, side]).min() > 15  # one-sided windows
+        # measured: 0.23 rad median (one-period), at most 0.09 (one-sided ramped)
+        assert np.median(error(out.amplitude[4:], side)) > 0.2 and error(out.sided, side).max() < 0.12
+    # none where the chosen window is centred, nor where the two periods would leave the line
+    assert np.isnan(out.sided[:, np.abs(out.offset) < 0.5]).all()
+    leaving = ((out.offset > 0.5) & (x + 80 > width)) | ((out.offset < -0.5) & (x - 79 < 0))
+    assert np.isnan(out.sided[:, leaving]).all()
+
+
 def test_ramped_fit_leaves_out_windows_with_an_edge_the_one_period_windows_avoid():
     # the carriers' phases jump at pixel 320 (a depth edge): exactly the pixels whose two-period
     # window (pixel - 39 .. pixel + 40) holds both sides of it have no ramped envelopes

@@ -533,6 +533,38 @@ def test_boxes_at_the_frames_ends_skip_the_windows_clamped_there():
                                   [values[0:6].sum(), values[0:7].sum(), values[0:8].sum()])
 
 
+def test_one_sided_ramped_envelopes_are_taken_next_to_edges_where_the_fringe_is_oblique():
+    # one line of 200 pixels: a run from the frame's start to 60, an edge, a run from 61 on;
+    # windows of 20 (ramped: 40); every pixel's chosen window after it (offset +9.5)
+    from sliscan.demodulate import Carriers, Demodulated
+    spec = patterns.phase_spec((512, 384))
+    width, window = 200, 20
+    amplitude = np.full((7, 1, width), 0.1, np.float32)
+    ramped, sided = np.full((3, 1, width), 0.2, np.float32), np.full((3, 1, width), 0.3, np.float32)
+    demod = Demodulated(amplitude=amplitude, dc=np.ones((1, width), np.float32), residual=np.zeros((1, width), np.float32),
+                        noise=np.ones((1, width), np.float32), offset=np.full((1, width), 9.5, np.float32),
+                        ramped=ramped, sided=sided)
+    carriers = Carriers(frequencies=np.arange(1, 8) / window, scale=1.0, window=window)
+    coarse = np.where(np.arange(width) <= 60, 100.0, 300.0).astype(np.float32)[None]
+    oblique = np.ones((1, width), bool)
+    envelopes, variance, offset = fringe.phase_envelopes(demod, coarse, spec, carriers, max_jump=10.0, oblique=oblique)
+    x = np.arange(width)
+    after_edge = (x >= 61) & (x < 81)  # within half a ramped window past the edge
+    inner = (x >= 20) & (x <= 40) | (x >= 81) & (x < 180)
+    np.testing.assert_array_equal(envelopes[0, 0, after_edge], np.float32(0.3))
+    np.testing.assert_array_equal(variance[0, after_edge], 2.0)  # the end of a two-period line fit
+    np.testing.assert_array_equal(envelopes[0, 0, inner], np.float32(0.2))
+    np.testing.assert_array_equal(variance[0, inner], 0.5)
+    assert (offset[0, after_edge | inner] == 0).all()
+    # the frame's start is no edge, and before the edge the chosen windows lie on its far side
+    rest = ~(after_edge | inner)
+    np.testing.assert_array_equal(envelopes[0, 0, rest], np.float32(0.1))
+    assert (offset[0, rest] == 9.5).all()
+    # where the fringe does not change along the carriers, the one-period fits stay
+    flat, _, _ = fringe.phase_envelopes(demod, coarse, spec, carriers, max_jump=10.0, oblique=~oblique)
+    np.testing.assert_array_equal(flat[0, 0, after_edge], np.float32(0.1))
+
+
 def _box_reference(values: np.ndarray, coarse: np.ndarray, radius: int, max_jump: float, clamped: int) -> np.ndarray:
     """`fringe._segment_box` along axis 2 as its docstring says it, pixel by pixel."""
     out = np.zeros(values.shape)

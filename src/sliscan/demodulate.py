@@ -122,6 +122,13 @@ class Demodulated:
         R carriers' envelopes (a phase channel's, after the bits') from a centred window of two
         spacing periods with a ramp per carrier (`demodulate_window`'s `ramped`), relative to the
         DC as `amplitude` is; NaN where that window leaves the line.  None unless asked for.
+    sided : (R, H, W) float32 array or None
+        The same carriers' envelopes from a window of two spacing periods with a ramp per
+        carrier that starts at the pixel where its chosen one-period window lies after it
+        (`offset` > 0), or ends at it where that window lies before it, evaluated at the pixel
+        (the fitted ramps carry the envelopes to it: no `offset`); NaN where the chosen window is
+        centred, where the two periods leave the line, or where an edge lies within them (as for
+        `ramped`).  With `ramped`.
     centred : Demodulated or None
         The same fit with every pixel's envelopes and `offset` from its centred window (shifted
         inside the line at its ends), where `amplitude` may come from a one-sided one; its
@@ -138,6 +145,7 @@ class Demodulated:
     noise: NDArray[np.float32] | None = None
     offset: NDArray[np.float32] | None = None
     ramped: NDArray[np.float32] | None = None
+    sided: NDArray[np.float32] | None = None
     centred: Demodulated | None = None
 
     def mapped(self, fn: Callable[[NDArray], NDArray]) -> Demodulated:
@@ -410,15 +418,15 @@ def _phasors(omega: NDArray[np.float64], width: int, block: int = 64) -> NDArray
 def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int, adaptive: bool,
               unexplained: NDArray[np.float32], var: NDArray[np.float32], dc: NDArray[np.float32],
               amp: NDArray[np.float32], misfit: NDArray[np.float32], offset: NDArray[np.float32],
-              ramped_first: int, ramped: NDArray[np.float32], scale: NDArray[np.float32],
+              ramped_first: int, ramped: NDArray[np.float32], sided: NDArray[np.float32], scale: NDArray[np.float32],
               centred: NDArray[np.float32], centred_offset: NDArray[np.float32]) -> None:
     """Best least-squares window fit of ``d + s t + sum_n (c_n e^{i w_n x} + c.c.)`` at every
     pixel of one line; writes the outputs of `demodulate_window` for it (``(W,)`` each, `amp`
     ``(C, W)``), in image units, and if `ramped_first` >= 0 those of `_fit_ramped` (`ramped`
-    ``(R, W)``).  If `scale` is ``(W,)``: the carriers' local scale error (`_scale_errors`)
-    between the one-period windows that end and start at every `FOLLOW_SCALE_STEP`-th pixel,
-    where both leave at most `FOLLOW_SCALE_EXPLAINED` of their AC energy unexplained, NaN
-    elsewhere.  If `centred` is ``(C, W)``: every carrier's envelope from the centred window,
+    and `sided`, ``(R, W)`` each).  If `scale` is ``(W,)``: the carriers' local scale error
+    (`_scale_errors`) between the one-period windows that end and start at every
+    `FOLLOW_SCALE_STEP`-th pixel, where both leave at most `FOLLOW_SCALE_EXPLAINED` of their AC
+    energy unexplained, NaN elsewhere.  If `centred` is ``(C, W)``: every carrier's envelope from the centred window,
     and that window's offset into `centred_offset` ``(W,)``.
 
     The line is divided by its flat field, then every window sum comes from running sums.
@@ -555,7 +563,8 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
         misfit[xi] = abs(observed - prediction[xi]) / max(fit_d[best], 1e-6)
         offset[xi] = best + (window - 1) / 2 - xi
     if ramped_first >= 0:
-        _fit_ramped(cum_i, cum_xi, cum_q, block, phasors, omega, window, ramped_first, dc, fit_u, fit_c, ramped)
+        _fit_ramped(cum_i, cum_xi, cum_q, block, phasors, omega, window, ramped_first, dc, fit_u, fit_c, offset, ramped,
+                    sided)
     if scale.size == width:
         scale[:] = np.nan
         grid = np.arange(0, n_starts - window, FOLLOW_SCALE_STEP)
@@ -633,7 +642,8 @@ def _ramped_gram(omega: NDArray[np.float64], length: int, first: int, ramped: in
 def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: NDArray[np.complex128],
                 block: NDArray[np.float64], phasors: NDArray[np.complex128], omega: NDArray[np.float64], window: int,
                 first: int, at_pixel: NDArray[np.float32], unexplained: NDArray[np.float64],
-                fitted: NDArray[np.complex128], out: NDArray[np.float32]) -> None:
+                fitted: NDArray[np.complex128], offset: NDArray[np.float32], out: NDArray[np.float32],
+                sided: NDArray[np.float32]) -> None:
     """The envelopes of the R carriers ``first .. first + R - 1`` at each pixel of one line, from
     a centred window of `RAMPED_PERIODS` spacing periods fitted with a DC, a ramp, every carrier
     and a ramp of each of those R carriers' envelopes (`_ramped_gram`), relative to the DC fitted
@@ -641,7 +651,11 @@ def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: 
     envelopes will be divided by); NaN where the window leaves the line, or where the one-period
     fits (`unexplained`, `fitted`: `_fit_line`'s per window start) at its two ends and at the
     pixel leave unexplained energies more than `RAMPED_MISFIT` apart (plus `RAMPED_FLOOR`): an
-    edge within the longer window that the one-period windows avoid.
+    edge within the longer window that the one-period windows avoid.  `sided` ``(R, W)``: the
+    same from the window that starts at the pixel where its chosen one-period window lies after
+    it (`offset` ``(W,)`` > 0, `_fit_line`'s), or ends at it where that one lies before it,
+    with the fitted envelopes and DC evaluated at the pixel (the window's first or last pixel:
+    the ramps carry them there); NaN elsewhere and on the same terms.
 
     `cum_i`, `cum_xi`, `cum_q`: `_fit_line`'s running sums of the flat-fielded line `block`
     (alone, times the pixel, times each carrier's ``exp(-i w_n x)`` = `phasors`).  A fringe
@@ -657,17 +671,22 @@ def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: 
     length = int(round(RAMPED_PERIODS * window))
     second = length - window  # the start of the one-period window at the far end
     out[:] = np.nan
+    sided[:] = np.nan
     if length > width or second < 1:
         return
     inverse = np.linalg.inv(_ramped_gram(omega, length, first, ramped))
     half = (length - 1) // 2
     here = (half - (length - 1) / 2) / length  # the pixel's t in its window
     # the rows of the solution that give the DC and each envelope's two parts at the pixel
-    rows = np.empty((1 + 2 * ramped, inverse.shape[0]))
-    rows[0] = inverse[0] + here * inverse[1]
-    for k in range(ramped):
-        cn, rk = 2 + 2 * (first + k), 2 + 2 * n_carriers + 2 * k
-        rows[1 + 2 * k], rows[2 + 2 * k] = inverse[cn] + here * inverse[rk], inverse[cn + 1] + here * inverse[rk + 1]
+    # (centred), and at the window's first and last pixels (one-sided)
+    rows = np.empty((3 * (1 + 2 * ramped), inverse.shape[0]))
+    for j, at in enumerate((here, -(length - 1) / 2 / length, (length - 1) / 2 / length)):
+        o = j * (1 + 2 * ramped)
+        rows[o] = inverse[0] + at * inverse[1]
+        for k in range(ramped):
+            cn, rk = 2 + 2 * (first + k), 2 + 2 * n_carriers + 2 * k
+            rows[o + 1 + 2 * k] = inverse[cn] + at * inverse[rk]
+            rows[o + 2 + 2 * k] = inverse[cn + 1] + at * inverse[rk + 1]
     n = width - length + 1
     projections = np.empty((inverse.shape[0], n))  # each basis function's window mean with the line
     inv_length = 1.0 / length
@@ -689,7 +708,8 @@ def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: 
             r = ((cum_xq[e] - cum_xq[s]) - centre * (cum_q[c, e] - cum_q[c, s])) * inv_length * inv_length
             r *= np.conj(phasors[c, s])
             projections[row, s], projections[row + 1, s] = r.real, -r.imag
-    coefficients = rows @ projections
+    size = 1 + 2 * ramped
+    coefficients = rows[:size] @ projections  # the centred windows' (the one-sided ones' below, where wanted)
     # the local scale error, every RAMPED_SCALE_STEP starts
     grid = np.arange(0, n, RAMPED_SCALE_STEP)
     scale_error = _scale_errors(fitted, phasors, omega, grid, second)
@@ -698,26 +718,47 @@ def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: 
         half_turn = 0.5 * omega[first + k] * scale_error * length
         turned = np.abs(half_turn) > 1e-6
         kept[k][turned] = np.maximum(np.sin(half_turn[turned]) / half_turn[turned], 0.5)
+    usable = np.zeros(n, np.bool_)
     for s in range(n):
         centred = unexplained[min(max(s + half - window // 2, 0), width - window)]
         left, right = unexplained[s], unexplained[s + second]
-        if max(left, right, centred) > RAMPED_MISFIT * min(left, right, centred) + RAMPED_FLOOR:
-            continue  # one part of the window is explained worse than another: an edge in it
-        gain = at_pixel[s + half] / max(coefficients[0, s], 1e-6)
-        for k in range(ramped):
-            re, im = coefficients[1 + 2 * k, s], coefficients[2 + 2 * k, s]
-            out[k, s + half] = np.sqrt(re * re + im * im) * gain / kept[k, s // RAMPED_SCALE_STEP]
+        # one part of the window explained worse than another: an edge in it
+        usable[s] = max(left, right, centred) <= RAMPED_MISFIT * min(left, right, centred) + RAMPED_FLOOR
+    one_sided = np.empty(size)
+    for xi in range(width):
+        for j in range(3):
+            if j == 0:
+                s = xi - half
+            elif j == 1:  # starting at the pixel, where its chosen one-period window lies after it
+                s = xi if offset[xi] > 0.5 else -1
+            else:  # ending at it, where that window lies before it
+                s = xi - length + 1 if offset[xi] < -0.5 else -1
+            if s < 0 or s >= n or not usable[s]:
+                continue
+            if j == 0:
+                column, target = coefficients[:, s], out
+            else:  # a few pixels' worth: in loops (a matrix product per line called BLAS's threads)
+                for q in range(size):
+                    total = 0.0
+                    for g in range(projections.shape[0]):
+                        total += rows[j * size + q, g] * projections[g, s]
+                    one_sided[q] = total
+                column, target = one_sided, sided
+            gain = at_pixel[xi] / max(column[0], 1e-6)
+            for k in range(ramped):
+                re, im = column[1 + 2 * k], column[2 + 2 * k]
+                target[k, xi] = np.sqrt(re * re + im * im) * gain / kept[k, s // RAMPED_SCALE_STEP]
 
 
 @numba.njit(cache=True, nogil=True)
 def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: NDArray[np.intp], short: int,
                adaptive: bool, lines: NDArray[np.intp], unexplained: NDArray[np.float32], var: NDArray[np.float32],
                dc: NDArray[np.float32], amp: NDArray[np.float32], misfit: NDArray[np.float32],
-               offset: NDArray[np.float32], ramped_first: int, ramped: NDArray[np.float32],
+               offset: NDArray[np.float32], ramped_first: int, ramped: NDArray[np.float32], sided: NDArray[np.float32],
                scale: NDArray[np.float32], centred: NDArray[np.float32], centred_offset: NDArray[np.float32]) -> None:
     """`_fit_line` on the given `lines` of `img` ``(H, W)``, without the GIL (threads run
     disjoint sets of lines); `omegas` ``(H, C)`` radians per pixel, `windows` ``(H,)``;
-    outputs ``(H, W)``, `amp` ``(C, H, W)``, if `ramped_first` >= 0 `ramped` ``(R, H, W)``
+    outputs ``(H, W)``, `amp` ``(C, H, W)``, if `ramped_first` >= 0 `ramped` and `sided` ``(R, H, W)``
     (`_fit_ramped`), if `scale` is ``(H, W)`` the scale errors of every
     `FOLLOW_SCALE_STEP`-th line (NaN on the others), and if `centred` is ``(C, H, W)`` the
     centred windows' envelopes and offsets (`centred_offset` ``(H, W)``)."""
@@ -728,6 +769,7 @@ def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: N
             scale[r] = np.nan
         _fit_line(img[r], omegas[r], windows[r], short, adaptive, unexplained[r], var[r], dc[r], amp[:, r], misfit[r],
                   offset[r], ramped_first, ramped[:, r] if ramped_first >= 0 else ramped[:, 0],
+                  sided[:, r] if ramped_first >= 0 else sided[:, 0],
                   scale[r] if measure else scale[0, :1], centred[:, r] if keep_centred else centred[:, 0],
                   centred_offset[r] if keep_centred else centred_offset[0])
 
@@ -798,11 +840,13 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     amp = np.empty((carriers.frequencies.size, h, w), dtype=np.float32)
     first = -1 if ramped is None or len(ramped) == 0 else ramped[0]
     ramp_amp = np.empty((len(ramped), h, w) if first >= 0 else (1, 1, w), dtype=np.float32)
+    sided_amp = np.empty_like(ramp_amp)
     scale = np.empty((h, w) if follow_scale else (1, 1), dtype=np.float32)
     centred_amp = np.empty((carriers.frequencies.size, h, w) if centred else (1, 1, 1), dtype=np.float32)
     centred_offset = np.empty((h, w) if centred else (1, 1), dtype=np.float32)
     over_rows(lambda lines: _fit_lines(img, omegas, windows, short, adaptive, lines, unexplained, var, dc, amp, misfit,
-                                       offset, first, ramp_amp, scale, centred_amp, centred_offset), h, workers)
+                                       offset, first, ramp_amp, sided_amp, scale, centred_amp, centred_offset), h,
+                                       workers)
     if follow_scale:
         error, measured = scale_map(scale, carriers)
         if measured.any() and float(np.median(np.abs(error[measured]))) > FOLLOW_SCALE_MIN:
@@ -814,6 +858,7 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
             centred_amp *= gain[None]
         if first >= 0:
             ramp_amp *= gain[None]
+            sided_amp *= gain[None]
         dc *= gain
         unexplained *= gain * gain
         var *= gain * gain
@@ -821,9 +866,10 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     dof = np.maximum(windows - 2 * carriers.frequencies.size - 2, 1).astype(np.float32)
     noise = np.sqrt(2 * unexplained / dof[:, None])
     demod = Demodulated(amplitude=amp, dc=dc, residual=unexplained / np.maximum(var, 1e-12), misfit=misfit, noise=noise,
-                        offset=offset, ramped=ramp_amp if first >= 0 else None)
+                        offset=offset, ramped=ramp_amp if first >= 0 else None, sided=sided_amp if first >= 0 else None)
     if centred:
-        demod = replace(demod, centred=replace(demod, amplitude=centred_amp, offset=centred_offset, ramped=None))
+        demod = replace(demod, centred=replace(demod, amplitude=centred_amp, offset=centred_offset, ramped=None,
+                                               sided=None))
     return demod
 
 

@@ -460,7 +460,8 @@ class Scanner:
             lines = prefer_centred(lines, centred[0][1], demod.centred.offset, self.spec, stripe_px=stripe_px,
                                    window=carriers.window)
         del centred  # its decoding's frames, before the phase channel's
-        decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image, **self.fringe_options)
+        decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image,
+                                border_line=None if lines is None else lines.proj_map, **self.fringe_options)
         if lines is not None:
             decoded = prefer_borders(decoded, lines.proj_map, self.spec) if self.spec.phase_carriers else lines
         t2 = time.perf_counter()

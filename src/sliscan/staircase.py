@@ -328,7 +328,7 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
     if offset is not None:  # after the clip: the stripe was decided from the same offset windows
         along = along_carriers(line, spec)
         with np.errstate(invalid="ignore"):
-            along -= np.nan_to_num(_slope_along_carriers(along, window) * along_carriers(described, spec))
+            along -= np.nan_to_num(slope_along_carriers(along, window) * along_carriers(described, spec))
     missing = new_valid & np.isnan(line)  # no border in the run: the stripe's centre
     line[missing] = centres[np.clip(new_stripe[missing], 0, spec.stripes - 1)]
     return replace(decoded, proj_map=line, stripe=new_stripe, valid=new_valid)
@@ -360,7 +360,7 @@ def _assemble_rows(slope: NDArray[np.float32], anchor: NDArray[np.float32], line
                 out[r, x] = min(max(value, low[k]), high[k])
 
 
-def _slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.float32]:
+def slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.float32]:
     """Mean change of `line` ``(H, W)`` (carriers along axis 1) per pixel along the carriers
     over `window` pixels, from the central differences that stay on one surface (under
     `MAX_SLOPE` lines per pixel), where at least a quarter of them do; NaN elsewhere."""
@@ -398,7 +398,7 @@ def prefer_centred(lines: Decoded, centred: Decoded, offset: NDArray[np.float32]
     the frame's ends the window is shifted inside, and the chosen windows' lines were measured
     better there).
     """
-    slope = along_carriers(_slope_along_carriers(along_carriers(lines.proj_map, spec), window), spec)
+    slope = along_carriers(slope_along_carriers(along_carriers(lines.proj_map, spec), window), spec)
     lines_per_px = spec.phase_lines / spec.stripes / stripe_px  # along the phase direction
     with np.errstate(invalid="ignore"):
         oblique = np.abs(slope) * (window / 2) >= min_drift * lines_per_px  # NaN compares false
