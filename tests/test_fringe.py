@@ -541,8 +541,8 @@ def test_one_sided_ramped_envelopes_are_taken_next_to_edges_where_the_fringe_is_
     width, window = 200, 20
     amplitude = np.full((7, 1, width), 0.1, np.float32)
     ramped, sided = np.full((3, 1, width), 0.2, np.float32), np.full((3, 1, width), 0.3, np.float32)
-    demod = Demodulated(amplitude=amplitude, dc=np.ones((1, width), np.float32), residual=np.zeros((1, width), np.float32),
-                        noise=np.ones((1, width), np.float32), offset=np.full((1, width), 9.5, np.float32),
+    line = lambda value: np.full((1, width), value, np.float32)  # noqa: E731
+    demod = Demodulated(amplitude=amplitude, dc=line(1), residual=line(0), noise=line(1), offset=line(9.5),
                         ramped=ramped, sided=sided)
     carriers = Carriers(frequencies=np.arange(1, 8) / window, scale=1.0, window=window)
     coarse = np.where(np.arange(width) <= 60, 100.0, 300.0).astype(np.float32)[None]

@@ -22,10 +22,11 @@ Two demodulators share one output type, `Demodulated`:
   changes along the lines themselves (a surface turned steeply about the phase direction),
   the lines are fitted resampled along the scale the first fit measured (`along_scale`).  A
   phase channel's carriers are also fitted in two-period windows with a ramp per carrier
-  (`_fit_ramped`), which follow a fringe that crosses the lines obliquely.  On request every
-  pixel's centred window's envelopes are kept as well (`Demodulated.centred`): where a stripe
-  border crosses the lines obliquely, they change across it smoothly where the chosen ones jump
-  (`sliscan.staircase.prefer_centred` places such borders from them).
+  (`_fit_ramped`), which follow a fringe that crosses the lines obliquely: centred on each
+  pixel, and beside an edge on the side its chosen window lies (`Demodulated.sided`).  On
+  request every pixel's centred window's envelopes are kept as well (`Demodulated.centred`):
+  where a stripe border crosses the lines obliquely, they change across it smoothly where the
+  chosen ones jump (`sliscan.staircase.prefer_centred` places such borders from them).
 
 Frequencies are in cycles per camera pixel along the carrier direction (camera `x` for the
 ``rows`` orientation, camera `y` for ``columns``).
@@ -426,8 +427,8 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
     and `sided`, ``(R, W)`` each).  If `scale` is ``(W,)``: the carriers' local scale error
     (`_scale_errors`) between the one-period windows that end and start at every
     `FOLLOW_SCALE_STEP`-th pixel, where both leave at most `FOLLOW_SCALE_EXPLAINED` of their AC
-    energy unexplained, NaN elsewhere.  If `centred` is ``(C, W)``: every carrier's envelope from the centred window,
-    and that window's offset into `centred_offset` ``(W,)``.
+    energy unexplained, NaN elsewhere.  If `centred` is ``(C, W)``: every carrier's envelope
+    from the centred window, and that window's offset into `centred_offset` ``(W,)``.
 
     The line is divided by its flat field, then every window sum comes from running sums.
     Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
@@ -737,7 +738,8 @@ def _fit_ramped(cum_i: NDArray[np.float64], cum_xi: NDArray[np.float64], cum_q: 
                 continue
             if j == 0:
                 column, target = coefficients[:, s], out
-            else:  # a few pixels' worth: in loops (a matrix product per line called BLAS's threads)
+            else:  # only where wanted, in loops (all three row sets in the line's matrix product
+                # tripled its work, and BLAS's own threads made the demodulation 2.5x slower)
                 for q in range(size):
                     total = 0.0
                     for g in range(projections.shape[0]):
@@ -758,8 +760,8 @@ def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: N
                scale: NDArray[np.float32], centred: NDArray[np.float32], centred_offset: NDArray[np.float32]) -> None:
     """`_fit_line` on the given `lines` of `img` ``(H, W)``, without the GIL (threads run
     disjoint sets of lines); `omegas` ``(H, C)`` radians per pixel, `windows` ``(H,)``;
-    outputs ``(H, W)``, `amp` ``(C, H, W)``, if `ramped_first` >= 0 `ramped` and `sided` ``(R, H, W)``
-    (`_fit_ramped`), if `scale` is ``(H, W)`` the scale errors of every
+    outputs ``(H, W)``, `amp` ``(C, H, W)``, if `ramped_first` >= 0 `ramped` and `sided`
+    ``(R, H, W)`` (`_fit_ramped`), if `scale` is ``(H, W)`` the scale errors of every
     `FOLLOW_SCALE_STEP`-th line (NaN on the others), and if `centred` is ``(C, H, W)`` the
     centred windows' envelopes and offsets (`centred_offset` ``(H, W)``)."""
     keep_centred = centred_offset.shape[0] == img.shape[0] and centred_offset.shape[1] == img.shape[1]
