@@ -319,7 +319,7 @@ def test_ramped_windows_follow_a_fringe_that_crosses_the_lines_obliquely():
     envelopes, variance, offset = fringe.phase_envelopes(demod, coarse, spec, carriers, max_jump=1.5 * 768 / 15)
     own = demod.amplitude[spec.bits:]
     used = np.all(envelopes == demod.ramped, axis=0) & np.any(envelopes != own, axis=0)
-    assert np.all(fringe.inner_pixels(coarse, jump=1.5 * 768 / 15, reach=carriers.window)[used])
+    assert np.all(fringe.inner_pixels(*fringe.run_bounds(coarse, jump=1.5 * 768 / 15), carriers.window)[used])
     assert np.all(offset[used] == 0) and 0.2 < used[gray.valid].mean() < 1
     # each envelope component's noise variance: the one-period fit's, half that over the ramped
     # window of two periods

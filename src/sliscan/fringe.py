@@ -1316,16 +1316,15 @@ def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.int32]:
     return end - first
 
 
-def inner_pixels(line: NDArray[np.float32], *, jump: float, reach: int) -> NDArray[np.bool_]:
-    """The pixels of `line` ``(H, W)`` at least `reach` pixels along axis 1 from either end of
-    their run (`run_bounds`), ``(H, W)`` bool.
+def inner_pixels(first: NDArray[np.int32], end: NDArray[np.int32], reach: int) -> NDArray[np.bool_]:
+    """The pixels at least `reach` pixels along axis 1 from either end of their run, ``(H, W)``
+    bool, from `run_bounds`' `first` and `end`.
 
     >>> line = np.array([[1, 2, 3, 4, 5, np.nan, 7, 8, 9, np.nan, 11, np.nan, np.nan]], np.float32)
-    >>> inner_pixels(line, jump=10.0, reach=1).astype(int).tolist()
+    >>> inner_pixels(*run_bounds(line, jump=10.0), 1).astype(int).tolist()
     [[0, 1, 1, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]]
     """
-    first, end = run_bounds(line, jump=jump)
-    x = np.arange(line.shape[1], dtype=np.int32)
+    x = np.arange(first.shape[1], dtype=np.int32)
     return (x - first >= reach) & (end - 1 - x >= reach)
 
 
@@ -1364,11 +1363,11 @@ def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: Patte
     frame = lambda a: along_carriers(a, spec)  # noqa: E731
     length = int(round(np.max(carriers.line_windows()) * RAMPED_PERIODS))
     reach = length // 2
-    inner = frame(inner_pixels(coarse, jump=max_jump, reach=reach)) & np.all(np.isfinite(demod.ramped), axis=0)
+    first, end = run_bounds(coarse, jump=max_jump)
+    inner = frame(inner_pixels(first, end, reach)) & np.all(np.isfinite(demod.ramped), axis=0)
     envelopes = np.where(inner[None], demod.ramped, own)
     sided = np.zeros(inner.shape, bool)
     if oblique is not None and demod.sided is not None and demod.offset is not None:
-        first, end = run_bounds(coarse, jump=max_jump)
         x = np.arange(coarse.shape[1], dtype=np.int32)[None, :]
         chosen = frame(demod.offset)
         after = (chosen > 0.5) & (first > 0) & (x - first < reach) & (x + length <= end)  # after an edge
