@@ -1337,8 +1337,9 @@ def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: Patte
     spacing periods lies on one run of `coarse` (the Gray code's line, carriers along axis 1;
     runs as in `run_lengths` with `max_jump`); within half that window of an edge (a run's end
     that is not the frame's), where the pixel's chosen one-period window lies on the run's
-    side and `oblique` ``(H, W)``, `Demodulated.sided` where its two periods lie on the run;
-    the one-period fit's elsewhere (everywhere if not `ramped`).
+    side and `oblique` ``(H, W)`` (carriers along axis 1, as `coarse`), `Demodulated.sided`
+    where its two periods lie on the run; the one-period fit's elsewhere (everywhere if not
+    `ramped`).
 
     Where the fringe crosses the carriers' lines obliquely (a surface turned about the
     phase direction: a sphere's left and right sides), each phase carrier's envelope changes
