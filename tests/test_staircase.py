@@ -10,7 +10,8 @@ from sliscan.decode import Decoded, decode
 from sliscan.evaluate import accuracy, true_proj_line
 from sliscan.patterns import code_bits, stripe_codes, stripe_of_line
 from sliscan.pipeline import Scanner
-from sliscan.staircase import border_lines, flipping_planes, interpolate_lines, prefer_borders, prefer_centred
+from sliscan.staircase import (MAX_SLOPE, border_lines, flipping_planes, interpolate_lines, prefer_borders,
+                               prefer_centred, slope_along_carriers)
 
 
 @pytest.mark.parametrize("spec", [patterns.thesis_spec((1024, 768)), patterns.default_spec((1024, 768)),
@@ -130,6 +131,47 @@ def test_a_run_without_a_second_border_takes_the_slope_around_it():
     cut = valid & (np.arange(40)[None, :] >= 12) & (np.arange(40)[None, :] < 28) & (rows > 100) & (rows < 200)
     assert np.abs(out.proj_map[cut] - line[cut]).max() < 0.1
     assert np.isnan(out.proj_map[~valid]).all()
+
+
+def test_a_run_with_one_border_and_no_slope_near_takes_the_frames_typical_slope():
+    spec = patterns.thesis_spec((1024, 768))
+    rows, cols = np.mgrid[0:300, 0:200]
+    line = 100.0 + 1.2 * rows  # borders at rows 36.25, 76.25, 116.25, 156.25, 196.25
+    band = (rows >= 130) & (rows < 186) & (cols >= 100)  # one border (row 156.25) in each column
+    valid = band | (cols < 40)  # two-border runs only far from the band (reach: 20 columns)
+    out = interpolate_lines(_synthetic(line, spec, valid), spec, stripe_px=40)
+    # both runs of each band column have one border and no slope around them: the median slope
+    # of the frame's two-border runs (here the exact one) instead of the stripe's centre
+    assert np.abs(out.proj_map[band] - line[band]).max() < 0.1
+    assert np.abs(patterns.stripe_center(out.stripe[band], spec) - line[band]).max() > 20
+    # with no two-border run anywhere, no slope is known: the runs keep their stripe's centre
+    alone = interpolate_lines(_synthetic(line, spec, band), spec, stripe_px=40)
+    np.testing.assert_array_equal(alone.proj_map[band], patterns.stripe_center(alone.stripe[band], spec))
+    # and so they do when asked to (with a phase channel, which places them better)
+    kept = interpolate_lines(_synthetic(line, spec, valid), spec, stripe_px=40, typical_slope=False)
+    np.testing.assert_array_equal(kept.proj_map[band], patterns.stripe_center(kept.stripe[band], spec))
+
+
+@pytest.mark.parametrize("window", [1, 6, 7, 40, 300])
+def test_the_slope_along_the_carriers_is_the_mean_of_the_central_differences_on_one_surface(window):
+    rng = np.random.default_rng(window)
+    line = np.cumsum(rng.normal(0.3, 0.5, (6, 120)), axis=1).astype(np.float32)
+    line[rng.random(line.shape) < 0.1] = np.nan  # gaps
+    line[:, 50:] += 40  # a depth edge: its differences are left out
+    step = np.full(line.shape, np.nan)
+    step[:, 1:-1] = 0.5 * (line[:, 2:].astype(np.float64) - line[:, :-2])
+    usable = np.abs(np.nan_to_num(step, nan=np.inf)) < MAX_SLOPE
+    radius = (window | 1) // 2
+    expected = np.full(line.shape, np.nan)
+    for x in range(line.shape[1]):  # directly: the usable differences within the window
+        span = slice(max(0, x - radius), x + radius + 1)
+        count = usable[:, span].sum(axis=1)
+        mean = np.where(usable[:, span], step[:, span], 0).sum(axis=1) / np.maximum(count, 1)
+        expected[:, x] = np.where(count >= 0.25 * window, mean, np.nan)
+    got = slope_along_carriers(line, window)
+    assert got.dtype == np.float32 and got.shape == line.shape
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+    np.testing.assert_allclose(got[~np.isnan(got)], expected[~np.isnan(expected)], rtol=1e-5, atol=1e-5)
 
 
 def test_a_border_seen_by_a_window_off_the_pixel_is_moved_back_by_the_slope_along_the_carriers():

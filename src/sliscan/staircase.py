@@ -19,8 +19,10 @@ on.
 Each run's pixels then get the line of a monotone cubic through the borders along the line
 (Fritsch-Carlson, as scipy's PCHIP: it follows a surface's curvature, which a straight line
 between two borders would cut); a run with one border (at a depth or shadow edge, or the
-frame's end) is extended from it with the mean slope of the two-border runs around it, and one
-with none keeps its stripe's centre.  Where a border crosses the carriers' lines obliquely, a
+frame's end) is extended from it with the mean slope of the two-border runs around it (or, with
+none near, that of the run beyond its border, else the median slope of all the frame's two-border
+runs: the rig's geometry sets it more than the surface does), and one with none keeps its
+stripe's centre.  Where a border crosses the carriers' lines obliquely, a
 demodulation window off the pixel's centre (`Demodulated.offset`) sees the border where it lies
 at that window's centre: each line is moved back by its slope along the carriers times that
 offset.  Every line is first clipped to its stripe's range (a decoded stripe is never
@@ -270,7 +272,8 @@ def _interpolate_rows(stripe: NDArray[np.int16], valid: NDArray[np.bool_], lit: 
 
 
 def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
-                      offset: NDArray[np.float32] | None = None, window: int = 1) -> Decoded:
+                      offset: NDArray[np.float32] | None = None, window: int = 1,
+                      typical_slope: bool = True) -> Decoded:
     """`decoded` with each valid pixel's projector line interpolated between the stripe borders
     around it instead of its stripe's centre (see the module's docstring); the decoded stripes
     unchanged, and the lit pixels the decoder left undecided between two runs of neighbouring
@@ -293,6 +296,11 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
         the carriers (measured on the interpolated lines over `window` pixels) times that offset.
     window : int
         The demodulation window, pixels along the carriers (with `offset`).
+    typical_slope : bool
+        Extend a run with one border and no slope near it (no two-border run within
+        `SLOPE_REACH`, none beyond its border) with the median slope of the frame's two-border
+        runs; false leaves its stripe's centre (with a phase channel the phase places those
+        pixels better than a guessed slope).
     """
     # the kernels walk each line along the phase direction (axis 1 of these views); the arrays
     # themselves stay in the camera's orientation (no transposed copies)
@@ -314,6 +322,8 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
     stripe, valid = view(new_stripe), view(new_valid)
     # a run with one border takes the mean slope of the two-border runs around it
     known = np.isfinite(slope)
+    sampled = slope[::4, ::4][known[::4, ::4]]  # the frame's typical slope, the last resort
+    typical = float(np.median(sampled)) if sampled.size and typical_slope else np.nan
     reach = max(1, int(round(SLOPE_REACH * stripe_px)))
     size = (2 * reach + 1, 2 * reach + 1)
     weight = cv2.boxFilter(known.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -323,12 +333,14 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
     low = np.concatenate([[2 * centres[0] - borders[0]], borders])  # each stripe's range of lines
     high = np.concatenate([borders, [2 * centres[-1] - borders[-1]]])
     over_rows(lambda rows: _assemble_rows(view(slope), view(anchor), view(line_at), view(near_slope), view(between),
-                                          view(weight), view(total), stripe, valid, low, high, rows, view(line)),
+                                          view(weight), view(total), typical, stripe, valid, low, high, rows,
+                                          view(line)),
               stripe.shape[0])
     if offset is not None:  # after the clip: the stripe was decided from the same offset windows
         along = along_carriers(line, spec)
         with np.errstate(invalid="ignore"):
-            along -= np.nan_to_num(slope_along_carriers(along, window) * along_carriers(described, spec))
+            move = slope_along_carriers(along, window) * along_carriers(described, spec)
+        np.subtract(along, move, out=along, where=~np.isnan(move))  # NaN: no slope or no border
     missing = new_valid & np.isnan(line)  # no border in the run: the stripe's centre
     line[missing] = centres[np.clip(new_stripe[missing], 0, spec.stripes - 1)]
     return replace(decoded, proj_map=line, stripe=new_stripe, valid=new_valid)
@@ -337,14 +349,14 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
 @numba.njit(cache=True, nogil=True)
 def _assemble_rows(slope: NDArray[np.float32], anchor: NDArray[np.float32], line_at: NDArray[np.float32],
                    near_slope: NDArray[np.float32], between: NDArray[np.float32], weight: NDArray[np.float32],
-                   total: NDArray[np.float32], stripe: NDArray[np.int16], valid: NDArray[np.bool_],
+                   total: NDArray[np.float32], typical: float, stripe: NDArray[np.int16], valid: NDArray[np.bool_],
                    low: NDArray[np.float64], high: NDArray[np.float64], rows: NDArray[np.intp],
                    out: NDArray[np.float32]) -> None:
     """`interpolate_lines`' line of every valid pixel of the given `rows` (phase direction along
     axis 1), into `out`: the cubic between two borders, else the line from the run's one border
-    with the slope of the two-border runs around it (`total` over `weight`) or else the run's
-    beyond it, clipped to the stripe's range (`low`, `high` per stripe); NaN where neither
-    exists."""
+    with the slope of the two-border runs around it (`total` over `weight`), else the run's
+    beyond it, else the `typical` one (the frame's median), clipped to the stripe's range
+    (`low`, `high` per stripe); NaN where the run has no border (or no slope is known)."""
     for r in rows:
         for x in range(stripe.shape[1]):
             if not valid[r, x]:
@@ -355,26 +367,51 @@ def _assemble_rows(slope: NDArray[np.float32], anchor: NDArray[np.float32], line
                 s = slope[r, x]
                 if not np.isfinite(s):
                     s = total[r, x] / weight[r, x] if weight[r, x] >= 1 else near_slope[r, x]
+                if not np.isfinite(s):
+                    s = typical
                 value = line_at[r, x] + s * (x - anchor[r, x])
             if np.isfinite(value):
                 out[r, x] = min(max(value, low[k]), high[k])
+
+
+@numba.njit(cache=True, nogil=True)
+def _slope_rows(line: NDArray[np.float32], window: int, least: float, rows: NDArray[np.intp],
+                out: NDArray[np.float32]) -> None:
+    """`slope_along_carriers` for the given `rows` of `line`, into `out`: per row the central
+    differences that stay on one surface and their count, summed over an odd `window` as a
+    running sum (in float64, as OpenCV's box filter sums float32 rows); NaN where fewer than
+    `least` of them are summed."""
+    width = line.shape[1]
+    radius = window // 2
+    value, usable = np.zeros(width + 2 * radius), np.zeros(width + 2 * radius)  # zero beyond the ends
+    for r in rows:
+        for x in range(1, width - 1):
+            step = np.float32(0.5) * (line[r, x + 1] - line[r, x - 1])
+            ok = abs(step) < MAX_SLOPE  # NaN compares false
+            value[radius + x] = step if ok else 0.0
+            usable[radius + x] = 1.0 if ok else 0.0
+        total, count = 0.0, 0.0
+        for i in range(window):
+            total += value[i]
+            count += usable[i]
+        for x in range(width):
+            if x > 0:
+                total += value[x - 1 + window] - value[x - 1]
+                count += usable[x - 1 + window] - usable[x - 1]
+            if count >= least:
+                out[r, x] = np.float32(total) / np.float32(count)
+            else:
+                out[r, x] = np.nan
 
 
 def slope_along_carriers(line: NDArray[np.float32], window: int) -> NDArray[np.float32]:
     """Mean change of `line` ``(H, W)`` (carriers along axis 1) per pixel along the carriers
     over `window` pixels, from the central differences that stay on one surface (under
     `MAX_SLOPE` lines per pixel), where at least a quarter of them do; NaN elsewhere."""
-    line = np.ascontiguousarray(line)  # a transposed view for a columns pattern
-    step = np.full(line.shape, np.nan, np.float32)
-    step[:, 1:-1] = 0.5 * (line[:, 2:] - line[:, :-2])
-    with np.errstate(invalid="ignore"):
-        usable = np.abs(step) < MAX_SLOPE  # NaN compares false
-    size = (max(1, window) | 1, 1)
-    total = cv2.boxFilter(np.where(usable, step, np.float32(0)), -1, size, normalize=False,
-                          borderType=cv2.BORDER_CONSTANT)
-    count = cv2.boxFilter(usable.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count >= 0.25 * max(window, 1), total / count, np.float32(np.nan)).astype(np.float32)
+    line = np.ascontiguousarray(line, dtype=np.float32)  # a transposed view for a columns pattern
+    out = np.empty(line.shape, np.float32)
+    over_rows(lambda rows: _slope_rows(line, max(1, window) | 1, 0.25 * max(window, 1), rows, out), line.shape[0])
+    return out
 
 
 def prefer_centred(lines: Decoded, centred: Decoded, offset: NDArray[np.float32], spec: PatternSpec, *,
