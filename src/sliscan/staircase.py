@@ -20,9 +20,9 @@ Each run's pixels then get the line of a monotone cubic through the borders alon
 (Fritsch-Carlson, as scipy's PCHIP: it follows a surface's curvature, which a straight line
 between two borders would cut); a run with one border (at a depth or shadow edge, or the
 frame's end) is extended from it with the mean slope of the two-border runs around it (or, with
-none near, that of the run beyond its border, else the median slope of all the frame's two-border
-runs: the rig's geometry sets it more than the surface does), and one with none keeps its
-stripe's centre.  Where a border crosses the carriers' lines obliquely, a
+none near, that of the run beyond its border, else the median slope of all the frame's
+two-border runs: the rig's geometry sets it more than the surface does), and one with none
+keeps its stripe's centre.  Where a border crosses the carriers' lines obliquely, a
 demodulation window off the pixel's centre (`Demodulated.offset`) sees the border where it lies
 at that window's centre: each line is moved back by its slope along the carriers times that
 offset.  Every line is first clipped to its stripe's range (a decoded stripe is never
