@@ -129,6 +129,8 @@ DECODER_VARIANTS = {
     "thesis 4-bit (chosen windows' borders)": ("thesis 4-bit", dict(centred_borders=False)),
     "sliscan 4-bit (chosen windows' borders)": ("sliscan 4-bit", dict(centred_borders=False)),
     "sliscan 4-bit + phase (chosen windows' borders)": ("sliscan 4-bit + phase", dict(centred_borders=False)),
+    "thesis 4-bit (no typical slope)": ("thesis 4-bit", dict(typical_slope=False)),
+    "sliscan 4-bit (no typical slope)": ("sliscan 4-bit", dict(typical_slope=False)),
 }
 
 
