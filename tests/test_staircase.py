@@ -156,7 +156,8 @@ def test_the_typical_slope_replaces_stripe_centres_and_lowers_a_sphere_scans_rms
     spec = patterns.default_spec((1024, 768))
     capture = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(spec),
                               simulate.Conditions(seed=3))
-    scans = [Scanner(spec, small_rig.calibration, typical_slope=typical).scan(capture.image) for typical in (False, True)]
+    scans = [Scanner(spec, small_rig.calibration, typical_slope=typical).scan(capture.image)
+             for typical in (False, True)]
     centres, typical = scans
     np.testing.assert_array_equal(centres.valid, typical.valid)
     changed = centres.valid & (centres.proj_map != typical.proj_map)
