@@ -322,8 +322,10 @@ def interpolate_lines(decoded: Decoded, spec: PatternSpec, *, stripe_px: float,
     stripe, valid = view(new_stripe), view(new_valid)
     # a run with one border takes the mean slope of the two-border runs around it
     known = np.isfinite(slope)
-    sampled = slope[::4, ::4][known[::4, ::4]]  # the frame's typical slope, the last resort
-    typical = float(np.median(sampled)) if sampled.size and typical_slope else np.nan
+    typical = np.nan  # the frame's typical slope, the last resort
+    if typical_slope:
+        sampled = slope[::4, ::4][known[::4, ::4]]
+        typical = float(np.median(sampled)) if sampled.size else np.nan
     reach = max(1, int(round(SLOPE_REACH * stripe_px)))
     size = (2 * reach + 1, 2 * reach + 1)
     weight = cv2.boxFilter(known.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
