@@ -64,8 +64,8 @@ BASE_GAMMA = 2.2
 #: `--patterns` keys -> names in `methods.method_specs`.
 PATTERNS = {"thesis": "CP thesis 4-bit", "sliscan": "CP sliscan 4-bit", "pmp": "PMP 1,8,64 x 4",
             "graycode": "Gray code 7-bit + 4-step phase", "phase": "CP sliscan 4-bit + phase"}
-#: Swept unless `--patterns` says otherwise (the README's figure; "phase", issue 8's, is swept apart at 1296x972:
-#: README, "The phase pattern under the same factors").
+#: Swept unless `--patterns` says otherwise (docs/accuracy.md's figure; "phase", issue 8's, is swept apart at 1296x972:
+#: docs/accuracy.md, "The phase pattern under the same factors").
 DEFAULT_PATTERNS = ("thesis", "sliscan", "pmp", "graycode")
 
 #: The figures of a row, in table order (`wrong_stripe` only for the composite patterns).
@@ -338,7 +338,7 @@ def main() -> None:
     parser.add_argument("--factors", default=",".join(f.name for f in FACTORS))
     parser.add_argument("--json", default="benchmarks/robustness.json")
     parser.add_argument("--plot", default="docs/robustness.png")
-    parser.add_argument("--markdown", help="also write the README's table (one line per level) to this file")
+    parser.add_argument("--markdown", help="also write the table of docs/accuracy.md (one line per level) to this file")
     args = parser.parse_args()
     chosen_patterns = args.patterns.split(",")
     chosen = [f for f in FACTORS if f.name in args.factors.split(",")]

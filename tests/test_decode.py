@@ -328,7 +328,7 @@ def test_bit_confidence_is_each_bit_margin_and_confidence_their_minimum(small_ri
 def test_bit_levels_are_learned_where_the_windows_are_explained(rng):
     # four bits on 0.02 (off) / 0.13 (on) of the DC, half the pixels on; on 5 % of them the
     # lowest carrier's envelope is 1.5-6 times the DC, where its window is badly explained
-    # (residual 0.9: a DC changing 16-fold along a dim receding plane, README).  Learned from
+    # (residual 0.9: a DC changing 16-fold along a dim receding plane, docs/accuracy.md).  Learned from
     # every lit pixel, two-means takes that tail for the "on" cluster; from the explained ones
     # the spans are the true 0.11
     spec = patterns.default_spec((1024, 768))

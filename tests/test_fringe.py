@@ -299,7 +299,7 @@ def test_ramped_windows_follow_a_fringe_that_crosses_the_lines_obliquely():
     # a plane turned 50 degrees about the vertical, noise-free: its fringe crosses the camera's
     # rows at 0.14 projector lines per pixel (5 lines per 34 px window), and the one-period
     # fits leak each phase carrier's change within the window into its neighbours (1D model
-    # and renders: README, "Sub-stripe depth from one frame")
+    # and renders: docs/accuracy.md, "Sub-stripe depth from one frame")
     rig = simulate.virtual_rig(camera_size=(800, 600), projector_size=(1024, 768))
     spec = patterns.phase_spec((1024, 768))
     capture = simulate.render(rig, simulate.tilted_plane_scene(50, axis="y"), patterns.render_pattern(spec), clean())
@@ -685,7 +685,7 @@ def test_a_realistic_sphere_keeps_most_of_the_gain(rig):
     stripes, _ = _line_errors(rig, patterns.default_spec((512, 384)), conditions, simulate.sphere_scene(),
                               interpolate_stripes=False)  # the staircase (`sliscan.staircase` removes it)
     # measured: 0.9 lines against 7.9 at 50 % completeness (this camera barely resolves the
-    # finest carrier: 2.5 pixels a period); at 1296x972 and above see the README
+    # finest carrier: 2.5 pixels a period); at 1296x972 and above see docs/accuracy.md
     assert np.median(phase) < 0.25 * np.median(stripes)
     assert complete > 0.4
     assert np.mean(phase > 384 / 15) < 0.01

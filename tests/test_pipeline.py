@@ -262,7 +262,7 @@ def test_narrow_runs_removed_by_the_scanner_are_mostly_wrong_codes(small_rig):
     leaves room for seeds), while the points kept are right 97 % of the time (0.95 leaves
     room).  (Decided by order, the default, the runs there are filled in, right more often:
     35 % of the dropped ones wrong on this capture, but without the filter gross outliers rise
-    3-40x on the accuracy benchmark's captures: README, "Design choices".)"""
+    3-40x on the accuracy benchmark's captures: docs/design.md.)"""
     spec = patterns.thesis_spec((1024, 768))
     conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=3), ambient=0.1,
                                      projector_gamma=2.2, projector_blur_px=1.0, camera_blur_px=1.0, seed=3,

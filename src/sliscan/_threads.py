@@ -121,7 +121,7 @@ def side_by_side(calls: Sequence[Callable[[], R]]) -> list[R]:
     a nested call could wait on forever).
 
     On 2 cores a scan's two decodings (`sliscan.pipeline.Scanner`) take 1.1-1.2 s side by side
-    at 5 MP against 1.6 s in turn with both cores each (README, "Speed"): between the kernels
+    at 5 MP against 1.6 s in turn with both cores each (docs/speed.md): between the kernels
     each runs numpy steps on one core.
     """
     workers = default_workers()

@@ -22,7 +22,7 @@ carriers' phases do not continue this end's, and that jump lands in every band. 
 window demodulator's windows stop at the line's ends, the samples within a window of either
 end describe the window one window in (`BasebandPlan.ends`): on the 1296x972 sphere (seed 3)
 the pixels within 12 pixels of the ends had 21 % of their stripes right before, and every
-scene of the accuracy benchmark gained 1.5-3 points of right stripes (README, "Speed",
+scene of the accuracy benchmark gained 1.5-3 points of right stripes (docs/speed.md,
 twentieth session).  Padding the line with zeros to the next fast length was measured worse
 (the padded edge is a step in every carrier), and so was mirroring it (the mirror reverses
 the carriers' phases).
@@ -37,7 +37,7 @@ the window demodulator's ramp would have fitted it: then the capture is divided 
 field, the DC under the same triangle, so its DC is one level along each line (which also
 levels the line's two ends).  On the 1296x972 and 960x720 smooth-albedo captures this gained
 0.2-3 points of right stripes, on uniform albedo it lost 0.0-0.5, on the checker it changed
-nothing beyond 0.15 (README, "Speed", twentieth session).
+nothing beyond 0.15 (docs/speed.md, twentieth session).
 
 Next to a depth edge or a shadow border across the line, the centred window straddles it:
 the carriers' phases jump there and the envelopes mix both sides' codes.  The window
@@ -55,12 +55,12 @@ the checkered one 88.0 -> 91.7 and 87.1 -> 91.1 %, the smooth steps 92.5 -> 95.2
 smooth sphere (0.43 -> 0.56 and 0.44 -> 0.59 %: across its limb); a shift of 0.75 window
 (three samples on some lines) gained 0.2-1 point more right stripes for more such stripes off
 (0.81 %), and candidates between the samples (interpolated) gained less and cost three times
-as much (README, "Speed", twentieth session).
+as much (docs/speed.md, twentieth session).
 
 `demodulate_baseband` is the demodulator of `Scanner(method="baseband")`, whose decoding and
 triangulation then run in one compiled pass over the pixels (`sliscan.fastscan`).  It fits no
 model per pixel, so it has none of the window demodulator's misfit and noise estimates, and
-its one-sided windows are chosen per sample: it trades accuracy for speed (README, "Speed").
+its one-sided windows are chosen per sample: it trades accuracy for speed (docs/speed.md).
 """
 
 from __future__ import annotations
@@ -81,13 +81,13 @@ REACH = 1.5
 
 #: `albedo_estimate` options of `normalise_lines` for the ``"steps"`` estimate: each line read
 #: left to right only, half the detector's cost; on the 5 MP captures of the accuracy
-#: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (README,
-#: "Speed", twentieth session).
+#: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (docs/speed.md,
+#: twentieth session).
 STEPS_OPTIONS: dict[str, bool] = {"both_ways": False}
 #: The flat field's floor in `normalise_lines`, relative to the capture's bright level (its
 #: 99th percentile): darker light (shadow, black surfaces) is divided by the floor instead,
 #: so its noise is not raised to the lit level.  A floor of 0.05 (a tenth of the bright DC)
-#: lost most of the flat field's gain on the smooth albedo (README, "Speed", twentieth session).
+#: lost most of the flat field's gain on the smooth albedo (docs/speed.md, twentieth session).
 FLAT_FLOOR = 0.01
 #: A sample takes the window `ONE_SIDED_SHIFT` of a window (the triangle's half-width, rounded
 #: to whole samples) to either side of its pixel instead of the centred one where that leaves

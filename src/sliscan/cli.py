@@ -377,8 +377,8 @@ _pattern_options = _options(
                       "every carrier peaking at once; --drive uses the pattern's own extremes]."),
     click.option("--drive", type=FLOATS,
                  help="LOW,HIGH: set A_p and B_p so that the pattern spans exactly this range of linear "
-                      "drive, e.g. 0.2,1 (its own extremes: its carriers seldom peak together; README, "
-                      "'Sub-stripe depth from one frame'); excludes --ap and --bp."),
+                      "drive, e.g. 0.2,1 (its own extremes: its carriers seldom peak together; "
+                      "docs/accuracy.md, 'Sub-stripe depth from one frame'); excludes --ap and --bp."),
     click.option("--gamma", type=POSITIVE,
                  help="Gamma pre-correction of the projector [1: none]; a pre-corrected composite pattern "
                       "spans the whole light range (0-1) unless --ap, --bp or --drive say otherwise."),

@@ -216,7 +216,7 @@ def level_pixels(demod: Demodulated, lit: NDArray[np.bool_]) -> NDArray[np.bool_
     1.5-6 times the DC on 1-5 % of the lit pixels, and `two_means` took that tail for the "on"
     cluster (bits 2 and 3 spans 1.09 and 1.42 instead of 0.11-0.12): 17 % of the stripes
     decoded right.  Without the pixels above `LEVEL_RESIDUAL` (5 % of the lit ones there) the
-    spans are 0.11-0.12 (README, "Sub-stripe depth from one frame").  Demodulators without a
+    spans are 0.11-0.12 (docs/accuracy.md, "Sub-stripe depth from one frame").  Demodulators without a
     residual (the baseband path's zeros) learn from every lit pixel."""
     explained = lit & (demod.residual <= LEVEL_RESIDUAL)
     return explained if explained.sum() >= LEVEL_PIXELS_KEPT * lit.sum() else lit
@@ -359,7 +359,7 @@ ZERO_STRIPE_GAP = 1 / 3
 #: ... and the walk also stops where that DC falls below this fraction of its brightest over
 #: the same reach before it: the edge of the light within the blur's few lines, even where a dim
 #: surface leaves less than a 2:1 drop to the ambient light behind it (a smooth albedo changes
-#: far less over those lines).  Measured on the thesis's pattern (README, "The all-zero
+#: far less over those lines).  Measured on the thesis's pattern (docs/design.md, "The all-zero
 #: code"): the zero stripe found 67.6 -> 91.3 % on the 1296x972 checkered plane (5 MP 71.7 ->
 #: 95.1 %), within 0.2 points elsewhere or better, and the pixels beyond the light taken as
 #: stripe 0 from 0.05-0.10 % of the lit ones to 0.00-0.02 %.
@@ -371,7 +371,7 @@ ZERO_STRIPE_EDGE = 2 / 3
 #: start from.  At 0.35 for the walk and 0.6 for the runs (before) they stopped wherever the
 #: albedo above stripe 1 was a third of stripe 1's, which a smooth albedo reaches within a
 #: stripe's height, and at a checker's dark squares: zero stripe found on the 1296x972 steps
-#: 88.2 -> 99.9 %, checkered steps 55 -> 100 %, checkered sphere 36 -> 99 % (README, "The
+#: 88.2 -> 99.9 %, checkered steps 55 -> 100 %, checkered sphere 36 -> 99 % (docs/design.md, "The
 #: all-zero code").
 ZERO_STRIPE_MIN_DC = 0.15
 #: ... and pixels without a stripe join the zero stripe along the carriers (`_zero_stripe`) in
@@ -402,7 +402,7 @@ def _zero_stripe(stripe: NDArray[np.integer], dc: NDArray[np.float32], spec: Pat
     Measured on the 5 MP virtual rig, thesis pattern, smooth albedo (a walk against stripe 1's
     DC alone at 0.6, before): right stripes on the sphere 88.1 -> 90.2 %, steps 93.3 -> 94.6 %,
     tilted plane 97.1 -> 98.1 %, with fewer pixels beyond the projector's light taken as
-    stripe 0 (README, "The all-zero code").
+    stripe 0 (docs/design.md, "The all-zero code").
 
     Parameters
     ----------
@@ -654,7 +654,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         an `OrderCosts` (True: the default costs), False: per pixel.  Also for the thesis's
         pattern, whose lit zero stripe looks like shadow (the order then decides the other
         stripes; `_zero_stripe` adds the zero one): measured on 30 of its captures (1296x972
-        seeds 0-3 and 5 MP seed 0; README, "Design choices", the order of the stripes) right
+        seeds 0-3 and 5 MP seed 0; docs/design.md, the order of the stripes) right
         stripes +1.2 points on average (+2.2 to +3.5 on the spheres), for gross outliers
         0.015 -> 0.024 % on average (at most 0.20 %, a frame's edge on the 5 MP checkered steps).
     min_margin, max_order_misfit : float

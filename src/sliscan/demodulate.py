@@ -329,7 +329,7 @@ def _short_window(carriers: Carriers) -> int:
 #: the centred window's unexplained energy.  0.7 since the thirteenth session (0.5 before):
 #: on captures of two rigs and three seeds not used to choose it, 0.2-1.6 points more right
 #: stripes with every pattern and scene, for up to 0.15 point more stripes off by more than
-#: one (README, Design choices).
+#: one (docs/design.md).
 PLACEMENT_GAIN = 0.7
 #: A one-sided box replaces the centred one in the flat field where its relative variance is
 #: below this fraction of the centred box's (measured: 0.1 keeps the centred box's accuracy
@@ -590,7 +590,7 @@ FOLLOW_SCALE_WINDOWS = 2
 
 #: The window of `_fit_ramped`, in spacing periods.  Over one period a ramp per carrier makes
 #: the fit ill-conditioned (condition number 6.6e3 against 14 without, in the 1D model of the
-#: README's "Sub-stripe depth from one frame"); over two, 5.7; over 1.5 it lost on the captures.
+#: docs/accuracy.md, "Sub-stripe depth from one frame"); over two, 5.7; over 1.5 it lost on the captures.
 RAMPED_PERIODS = 2
 #: `_fit_ramped` leaves out the pixels where the one-period fits at its window's two ends and
 #: at the pixel leave unexplained energies (relative to the flat-fielded line's DC of 1) more
@@ -966,7 +966,7 @@ def along_scale(image: NDArray[np.floating], carriers: Carriers, error: NDArray[
     the line's frequencies.  Each line is resampled (cubic) at ``u = u(0) + k
     du`` (``du`` the line's mean, about 1), fitted, and every output taken back at the sample
     nearest to each pixel (an interpolation would mix the two sides of a depth edge).
-    Measured (README, "Sub-stripe depth from one frame"): on a plane turned 60 degrees about the
+    Measured (docs/accuracy.md, "Sub-stripe depth from one frame"): on a plane turned 60 degrees about the
     vertical (960x720, noise-free) the stripe pattern 91 -> 97 % of the stripes right."""
     h, w = error.shape
     warp = np.arange(w)[None, :] + np.cumsum(error, axis=1)  # u(x), (H, W)
@@ -999,7 +999,7 @@ ALBEDO_ESTIMATES = ("steps", "closing", "envelopes", "guided", "notch-log", "not
 #: (`STEP_ECHO`), and the ratio's two halves must agree within `STEP_CONSTANCY` of the height.
 #: The threshold is the earlier detector's (chosen on the 1296x972 captures of issue 8); the
 #: rest were set on the 5 MP seed-0 captures and the 640x480 test rig, and checked on other
-#: seeds and rigs (README, Accuracy).
+#: seeds and rigs (docs/accuracy.md).
 STEP_THRESHOLD = 1.0
 STEP_BOX = 0.125
 STEP_MIN_BOX = 2

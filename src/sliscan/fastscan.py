@@ -20,7 +20,7 @@ border refinement and the neighbours' agreement (the 3D filters, speckles and na
 after the pass when on, `Scanner`'s default); patterns with a phase channel are not supported (their stripes only unwrap the fringe).  The
 thesis's lit all-zero stripe, which needs a walk along the phase direction
 (`decode._zero_stripe`), is found after the pass, only for a pattern that projects that code
-(`zero_stripe`: 0.2-0.4 s at 5 MP).  Measured against the default (README, "Speed").
+(`zero_stripe`: 0.2-0.4 s at 5 MP).  Measured against the default (docs/speed.md).
 """
 
 from __future__ import annotations

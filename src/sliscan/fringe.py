@@ -64,7 +64,7 @@ Stages, each its own function:
 10. Last, the ring of pixels next to any pixel not kept (`beside_gaps`, `GAP_RING`): whatever
     made that one fail reaches them a little less, and the error grows toward every gap.
 
-Measured on the virtual rig: README, "Sub-stripe depth from one frame".
+Measured on the virtual rig: docs/accuracy.md, "Sub-stripe depth from one frame".
 """
 
 from __future__ import annotations
@@ -341,7 +341,7 @@ def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels,
     the phase direction, and the fringe's phase there: on a 5 MP noise-free plane with the
     smooth albedo a bias of -0.33 / +0.40 projector lines where the log albedo falls / rises
     by more than 0.004 per pixel along the phase direction (unweighted: -0.01 / +0.08), and
-    the median error 0.32 lines (unweighted 0.24; README, "Sub-stripe depth from one frame").
+    the median error 0.32 lines (unweighted 0.24; docs/accuracy.md, "Sub-stripe depth from one frame").
 
     `envelopes` ``(N, H, W)``: the phase carriers' envelopes to use (`phase_envelopes`,
     `debiased`), by default `demod`'s; `totals` ``(N, H, W)``: the envelopes the sum is taken
@@ -508,7 +508,7 @@ def _twiced_box(values: NDArray[np.float32], coarse: NDArray[np.float32], length
     ``length // 2`` pixels' values repeat those of the first and last centred window, and a
     box over them would hold one window's estimate many times over, its ripple and noise
     unaveraged (measured at 1296x972: a noise-free plane's line error 0.70 projector lines RMS
-    within one window of the frame's sides against 0.33 inside; README, "Sub-stripe depth from
+    within one window of the frame's sides against 0.33 inside; docs/accuracy.md, "Sub-stripe depth from
     one frame").  Those boxes are moved inward past them, keeping their length; the position
     channel of `with_positions` says where their sums lie, and `recentre` turns them back
     (`frame_ends`; if false, they are clipped like any run's end)."""
@@ -550,7 +550,7 @@ def bridge_gaps(coarse: NDArray[np.float32], gap: int, max_jump: float) -> NDArr
     there); a box along the phase direction clipped at such a gap describes the fringe up to
     half a box away from its pixel, on the side away from the border.  Measured on a 5 MP
     noise-free plane: -1.5 and +2.0 projector lines next to a border, decaying over six lines
-    (README, "Sub-stripe depth from one frame").  The gap's own pixels add nothing to the sums
+    (docs/accuracy.md, "Sub-stripe depth from one frame").  The gap's own pixels add nothing to the sums
     (their phasors are 0) and stay undecoded.
 
     >>> bridge_gaps(np.array([[1.0], [np.nan], [np.nan], [2.0], [np.nan], [90.0]], np.float32), 2, 5.0).ravel()
@@ -674,7 +674,7 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
     mean is at least `min_slope` (radians per pixel), the phasor is turned by minus that mean
     times its position's distance from the pixel.  Else it stays: at a run's end one side is
     missing, so the pixels nearest an edge keep their bias (filling their slope in from the
-    nearest measured one bent flat surfaces, where error patches read as slopes: README), and
+    nearest measured one bent flat surfaces, where error patches read as slopes: docs/accuracy.md), and
     a slope under `min_slope` is as likely the local error's as the fringe's.  Except at the
     frame's two ends (runs that start at its first pixel or end at its last), which are no
     edge: the surface goes on unseen, and within ``3 reach`` of them the (twiced) boxes
@@ -682,7 +682,7 @@ def recentre(summed: NDArray[np.float32], coarse: NDArray[np.float32], *, max_ju
     phase change from the position described to the box two `reach` inward of it (estimates a
     `reach` long on either side rarely agree within 30 % there), kept if at least `min_slope`.
 
-    Measured on the 5 MP sphere (README, "Sub-stripe depth from one frame"): the fitted
+    Measured on the 5 MP sphere (docs/accuracy.md, "Sub-stripe depth from one frame"): the fitted
     radius 123.86 -> 123.24 mm (122.555 true), median error 1.41 -> 1.34 mm.
 
     Parameters
@@ -748,7 +748,7 @@ def recentre_along_phase(sums: NDArray[np.float32], runs: NDArray[np.float32], *
     box of `smooth_phasors` along the phase direction is clipped to one side: it describes the
     fringe up to half a box away, where the fringe's phase differs by the slope times the
     distance (the projection's own slope along the phase direction, 2 pi per fringe period).
-    Measured before this existed on the 5 MP virtual rig's sphere and steps (README, "Sub-stripe
+    Measured before this existed on the 5 MP virtual rig's sphere and steps (docs/accuracy.md, "Sub-stripe
     depth from one frame"): the 7 % of pixels within half a box of a run's end carried 45 % of
     the squared error left after the whole-period slips.  The slope is measured as in
     `recentre`, between the pixel's summed phasor and the one `reach` rows away on either side
@@ -920,7 +920,7 @@ RECENTRE_MIN_CHANGE = 4.0
 #: `phase_envelopes` takes the one-sided two-period ramped fits next to edges where the Gray
 #: code's border-interpolated line changes by at least this many projector lines over a window
 #: along the carriers (the fringe crosses them obliquely there).  Measured on 31 captures
-#: (README, "Sub-stripe depth from one frame"): with it no capture's RMS rose by more than
+#: (docs/accuracy.md, "Sub-stripe depth from one frame"): with it no capture's RMS rose by more than
 #: 0.5 %; without it the checkered planes' rose by 7-8 %, 2 lines gained 0.1-0.6 % more on
 #: the spheres for +0.4 % on one checkered plane.
 ONE_SIDED_MIN_CHANGE = 4.0
@@ -931,7 +931,7 @@ ONE_SIDED_VARIANCE = 2.0
 
 #: `refine` drops the pixels whose `window_contrast` exceeds this or is below its inverse.
 #: Measured on the virtual rig's sphere and steps (5 MP seed 0 and 1296x972 seed 1, smooth and
-#: checkered albedo; README, "Sub-stripe depth from one frame"): at 3 it catches 25-49 % of the
+#: checkered albedo; docs/accuracy.md, "Sub-stripe depth from one frame"): at 3 it catches 25-49 % of the
 #: whole-period slips on the 5 MP spheres and 16-37 % on the checkered 1296x972 ones, for 0.03-0.4 %
 #: of the correct pixels (a checker edge of contrast 3.6 inside a window is the most it takes);
 #: at 2.5 the checkered sphere loses 2 % of its correct pixels, at 2 the smooth one 2.6 %.
@@ -943,7 +943,7 @@ MAX_WINDOW_CONTRAST = 3.0
 #: period off beside one.  Those patches are where a window along the carriers, or a box along
 #: the phase direction, described the surface across the edge, and where the edge's own jump is
 #: close to a whole period the phase agrees with their wrong stripe.  Measured on the virtual
-#: rig (README, "Sub-stripe depth from one frame"): RMS error 14-21 % lower on the smooth
+#: rig (docs/accuracy.md, "Sub-stripe depth from one frame"): RMS error 14-21 % lower on the smooth
 #: spheres (5 MP seeds 0 and 7, 1296x972 seeds 1 and 2, an unseen 1920x1440 rig) for 0.2-0.7
 #: points of completeness, the steps 3-10 % for 0.5-0.9 points; medians unchanged.  At 1/10
 #: the 5 MP sphere's RMS falls further (5.4 -> 5.0 mm) for twice the completeness.
@@ -956,7 +956,7 @@ EDGE_MARGIN = 1 / 16
 #: unwrapping cannot tell when the edge's jump is close to a whole period), while an albedo
 #: edge on one surface, where the same contrast is harmless, has no jump.  The square bridges
 #: the undecoded gap that usually separates such pixels from their own surface's kept ones.
-#: Measured on the virtual rig (README, "Sub-stripe depth from one frame"): the 5 MP smooth
+#: Measured on the virtual rig (docs/accuracy.md, "Sub-stripe depth from one frame"): the 5 MP smooth
 #: sphere's RMS error 3.7 -> 3.2 mm with the other tests on (its dark limb beside the wall),
 #: for 0.3 points of completeness.
 NEAR_JUMP_REACH = 0.5
@@ -967,14 +967,14 @@ NEAR_JUMP_CONTRAST = 2.0
 #: every window that describes them lies mostly on pixels that could not be decoded or on
 #: another surface, like the wall pixels beside a sphere's limb that carry the sphere's line
 #: across the limb (at 5 MP an eighth of a window is 11 px).  Measured on the virtual rig
-#: (README): the spheres' RMS error 2-19 % lower, the steps' 3-12 %, for 0.15-0.6 points of
+#: (docs/accuracy.md): the spheres' RMS error 2-19 % lower, the steps' 3-12 %, for 0.15-0.6 points of
 #: completeness; a quarter of a window costs 1.6 times the completeness for 1.3 times the gain.
 SHORT_RUN = 0.125
 
 #: Within that reach, also the pixels of runs shorter than `MID_RUN` of a window whose window
 #: contrast exceeds `MID_RUN_CONTRAST` (or is below its inverse): the longer runs of wall
 #: pixels past a limb, whose windows lie on the sphere, where neither test alone takes them.
-#: Measured on the virtual rig (README): the unseen 5 MP seed-13 sphere 5.28 -> 4.65 mm, the
+#: Measured on the virtual rig (docs/accuracy.md): the unseen 5 MP seed-13 sphere 5.28 -> 4.65 mm, the
 #: other captures 0-1 % lower, for at most 0.09 points of completeness (at 1.25: 4.52 mm and
 #: 0-4 %, for up to 0.23 points).
 MID_RUN = 0.5
@@ -997,7 +997,7 @@ EXTEND_SNR = 4.0
 #: `refine` drops, last, the kept pixels within this many pixels (8-connected steps) of a pixel
 #: it did not keep (`beside_gaps`).  Whatever made that pixel fail (a window or box reaching
 #: across a depth edge or a shadow, a limb's light mixed with the wall's, a Gray code in doubt)
-#: reaches its neighbours a little less: measured on the virtual rig's 5 MP sphere (README,
+#: reaches its neighbours a little less: measured on the virtual rig's 5 MP sphere (docs/accuracy.md,
 #: "Sub-stripe depth from one frame"), the pixels next to a gap are 1.1 % of the points and
 #: carry 23 % of the squared error (RMS 14 mm against 1.9 mm for those 40 px or more inside).
 #: One ring lowered the RMS error by 2-36 % on 23 captures (three rigs, six seeds) for 0.1-1.7
@@ -1044,7 +1044,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         box that mixes two surfaces' phases, or noise (below 0.5: 70 % more than 5 lines off).
     smooth : bool
         Sum the phasors over the boxes of `smooth_phasors`; if false, each pixel's own phase
-        (for the benchmark's record: see the README's accuracy tables).
+        (for the benchmark's record: see the tables of docs/accuracy.md).
     rescue : bool
         Unwrap the pixels whose stripe is in doubt against `local_reference`; if false, drop them.
     extend : bool
@@ -1073,7 +1073,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
         short gaps (`bridge_gaps`), in the fringe period the decisions chose; the decisions
         themselves (modulation, agreement with the stripe, rescue, extension) are made on boxes
         that stop at every undecoded pixel.  Bridged boxes for the decisions as well kept 0.1-0.2
-        % more pixels, 10-15 % of them a fringe period off (README).  If false, the phase of the
+        % more pixels, 10-15 % of them a fringe period off (docs/accuracy.md).  If false, the phase of the
         stopping boxes (for the benchmark's record).
     recentre_rows : bool
         Also move that phase from the row its box describes back to the pixel's
@@ -1346,7 +1346,7 @@ def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: Patte
     within the window, and a one-period fit, which takes it for constant, leaks that change
     into the neighbouring carriers' fits: on a plane turned 60 degrees about the vertical
     (0.3 projector lines per camera pixel) the line came out 1.9 lines RMS off on a noise-free
-    render (README, "Sub-stripe depth from one frame").  The ramped fit takes the change in, and
+    render (docs/accuracy.md, "Sub-stripe depth from one frame").  The ramped fit takes the change in, and
     its envelopes describe the pixel itself (offset 0).  Next to an edge a centred longer
     window would reach across; the one on the run's side, evaluated at its end, takes the
     change in there too (offset 0), where the fringe does change (`oblique`: on flat fringes
@@ -1392,7 +1392,7 @@ def debiased(envelopes: NDArray[np.float32], variance: NDArray[np.float32] | Non
     others (`refine` takes the fringe's phase and levels from these, its modulation tests from
     the envelopes as they are).  With the phase carriers' envelopes a median 4-5 noise
     deviations high on the virtual rig's 1296x972 spheres, this lowered the phase channel's RMS
-    error on 26 of 29 captures, by up to 12 % (README, "Sub-stripe depth from one frame").
+    error on 26 of 29 captures, by up to 12 % (docs/accuracy.md, "Sub-stripe depth from one frame").
     None: returned as they are.
     """
     if variance is None:

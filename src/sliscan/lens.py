@@ -23,7 +23,7 @@ its calibrations have none).
 
 The model is written once (`_model`, compiled with numba) and evaluated point by point in
 compiled loops: undistorting a 1296x972 map of decoded projector rows takes ~0.07 s this way,
-~0.8 s as the same Newton iteration in numpy array expressions (README, "Lens distortion").
+~0.8 s as the same Newton iteration in numpy array expressions (docs/accuracy.md, "Lens distortion").
 
 References
 ----------

@@ -46,7 +46,7 @@ _EMPTY = -1
 #: Largest quantised value; the map is scaled so that `lines` projector lines fit below it.
 _INT16_TOP = 32000
 #: `remove_narrow_runs` continues a run across invalid gaps up to this share of the window.
-#: Measured (README, "Design choices", the narrow-run filter): on the thesis pattern's
+#: Measured (docs/design.md, the narrow-run filter): on the thesis pattern's
 #: captures the gross outliers fell 2-7x (5 MP smooth sphere 0.113 -> 0.017 %) for at most 0.1
 #: point of completeness; bridging whole windows took 0.05 point more of sliscan's own
 #: pattern's right stripes, a sixteenth of one kept half the gain.
@@ -221,8 +221,8 @@ def remove_jump_edges(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float,
     the edge (a sphere's grazing limb), the first pixel beyond it decodes, consistently, to the
     surface behind (the wall's row, on the sphere's limb): a pixel beside a gap goes when a
     valid pixel within `reach` pixels (Chebyshev distance d) differs from it by more than
-    ``max_jump * d``, more than one surface's steepest slope allows.  Measured (README, "Design
-    choices", mixed pixels): on the realistic sphere at 1296x972 (seeds 1, 2) PMP's RMS 4.9 ->
+    ``max_jump * d``, more than one surface's steepest slope allows.  Measured (docs/design.md,
+    mixed pixels): on the realistic sphere at 1296x972 (seeds 1, 2) PMP's RMS 4.9 ->
     0.37 mm and the Gray code's 4.4 -> 2.2 mm, for 0.2-0.4 points of completeness; a tilted
     plane loses nothing.
 
@@ -444,7 +444,7 @@ def shadow_side(line: NDArray[np.float32], dc: NDArray[np.float32], *, jump: flo
     fringe: triangulated on its own ray, that is a point off both surfaces.  On the virtual
     rig's steps the boxes' shadows on the wall below them made such rows one to three pixels
     deep along every horizontal edge (phase channel, 5 MP smooth steps: RMS error 5.9 -> 4.2
-    mm, completeness unchanged to 0.1 points; multi-shot: `remove_shadow_sides`; README).
+    mm, completeness unchanged to 0.1 points; multi-shot: `remove_shadow_sides`; docs/design.md).
 
     Parameters
     ----------
@@ -481,8 +481,8 @@ def remove_shadow_sides(proj_map: ArrayLike, valid: ArrayLike, light: ArrayLike,
 
     For a multi-frame capture, whose every pixel's light is its own (no demodulation window):
     blur lends the first pixels of a shadow (the steps' shadows on the wall below them, the
-    wall beside a sphere's limb) the lit side's light, code and phase.  Measured (README,
-    "Design choices", mixed pixels): after `remove_jump_edges`, on the realistic steps at
+    wall beside a sphere's limb) the lit side's light, code and phase.  Measured (docs/design.md,
+    mixed pixels): after `remove_jump_edges`, on the realistic steps at
     1296x972 (seeds 1, 2) PMP's RMS 5.3 -> 1.6 mm, the Gray code's 1.9 -> 0.5 mm, for at most
     0.1 points of completeness on smooth albedo; a checker's dark squares cost the Gray codes
     1.2-1.8 points (their edges pass for shadows) for RMS 3.8-4.9 -> 0.4-1.0 mm.

@@ -357,7 +357,7 @@ def carriers_above(carriers: tuple[float, ...], count: int = 3) -> tuple[float, 
 #: carrier phases the seven carriers of the 4-bit phase pattern seldom peak together: given
 #: an equal share of [0, 1] each (``b_p = 0.5 / 7``) the pattern spans only 0.25-0.89.
 #: Stretched over 0.2-1.0 every carrier is 1.24 times stronger; measured on the virtual rig
-#: (README, "Sub-stripe depth from one frame", 23 captures on three rigs) together with the
+#: (docs/accuracy.md, "Sub-stripe depth from one frame", 23 captures on three rigs) together with the
 #: ring beside the gaps (`fringe.GAP_RING`), against neither: RMS error 1-38 % lower on all 23,
 #: median 4-23 % lower on all 23, completeness -1.4 to +1.0 points.  The low end stays at 0.2,
 #: where an uncorrected gamma of 2.2 leaves 3 % of the light.
@@ -371,7 +371,7 @@ PHASE_DRIVE = (0.2, 1.0)
 #: never all trough together, so eq. 3.1 spans only 0.24-1 of it.  Stretched over 0-1 (A_p
 #: 0.34, B_p 0.165) the pre-corrected pattern decodes more of the virtual rig's captures than
 #: the uncorrected one (all 12 at 1296x972, seeds 5-7; 7 of 8 at 5 MP: not sliscan's checkered
-#: steps), and the unstretched pre-corrected one fewer (README, "Robustness").
+#: steps), and the unstretched pre-corrected one fewer (docs/accuracy.md, "Robustness").
 PRECORRECTED_DRIVE = (0.0, 1.0)
 
 

@@ -166,7 +166,7 @@ class ScanChoices:
     albedo_steps : bool
         Whether the window and baseband demodulators divide the capture by its sharp
         reflectance steps first (``Scanner.albedo`` ``"steps"``, the default) or by nothing
-        (None: the faster scan for surfaces without sharp texture, README "Speed"; the band-pass
+        (None: the faster scan for surfaces without sharp texture, docs/speed.md; the band-pass
         demodulator and multi-frame patterns divide by nothing either way).
     stripe_lines : bool
         Whether each pixel's projector line is interpolated between its stripe's located borders
@@ -279,20 +279,21 @@ class Scanner:
         Method ``window``, with `interpolate_stripes`: where a border crosses the carriers
         obliquely, place it from the centred windows' envelopes as well (`sliscan.staircase.
         prefer_centred`: a second decoding and interpolation, run side by side with the first
-        (`sliscan._threads.side_by_side`), about 0.4 s more at 5 MP on 2 cores; README, "Removing the staircase": medians 10-40 % lower on spheres and on
+        (`sliscan._threads.side_by_side`), about 0.4 s more at 5 MP on 2 cores;
+        docs/accuracy.md, "Removing the staircase": medians 10-40 % lower on spheres and on
         surfaces turned about the phase direction).  On by default; false: the chosen windows'
         borders only.
     typical_slope : bool
         With `interpolate_stripes`, a pattern without a phase channel: a run with one border and
         no slope near it is extended from its border with the median slope of the frame's
         two-border runs instead of keeping its stripe's centre (`sliscan.staircase.
-        interpolate_lines`; README, "Removing the staircase": RMS 0-32 % lower).  On by default;
-        with a phase channel always off (the phase places those pixels better).
+        interpolate_lines`; docs/accuracy.md, "Removing the staircase": RMS 0-32 % lower).  On
+        by default; with a phase channel always off (the phase places those pixels better).
     albedo : str or None
         Methods ``window`` and ``baseband``: the albedo estimate the capture is divided by
         before demodulation (`sliscan.demodulate.normalise_albedo`; ``"steps"``, the default,
         the sharp reflectance steps, which no demodulation window can fit); None for none (the
-        fastest baseband scan, for surfaces without sharp texture: README, "Speed").  The
+        fastest baseband scan, for surfaces without sharp texture: docs/speed.md).  The
         baseband path divides by each line's flat field as well (`sliscan.baseband.normalise_lines`).
 
     Examples
@@ -410,7 +411,7 @@ class Scanner:
             Method ``baseband`` only: an earlier result of this camera size whose arrays this
             scan overwrites (and returns, with its own timings), as a frame-after-frame loop
             does once it is done with a frame.  New memory costs its first write: at 5 MP the
-            ~135 MB of outputs take ~20 ms more to fill fresh than reused (README, "Speed").
+            ~135 MB of outputs take ~20 ms more to fill fresh than reused (docs/speed.md).
 
         Returns
         -------

@@ -39,7 +39,7 @@ chosen windows'.
 
 With a phase channel the interpolated line replaces the phase's where the two agree
 (`prefer_borders`): the borders are the more precise, the phase the more robust.  Measured on
-the virtual rig: README, "Removing the staircase".
+the virtual rig: docs/accuracy.md, "Removing the staircase".
 """
 
 from __future__ import annotations
