@@ -18,7 +18,10 @@ frames); classic Gray code with 4-step phase refinement, 7 bits on 8-row codes (
   (mismatch = projector gamma - pre-correction gamma; 2.2 = no pre-correction);
 * blur: the projector's and the camera's Gaussian sigma (pixels);
 * surface slope: a plane tilted about x (depth along the stripes' direction, stripes
-  compressed) and about y (carriers compressed), 0-60 degrees.
+  compressed) and about y (carriers compressed), 0-60 degrees;
+* projector roll: the projector turned about its own optical axis, 0-10 degrees, as a rig's
+  mounting leaves it (its field of view kept: the corners of the camera's view may go unlit),
+  so that the stripes cross the camera's lines obliquely everywhere (the sphere).
 
 For every point and pattern: completeness (lit pixels with a point), outliers (valid points
 farther from the truth than one stripe of the thesis's 4-bit pattern, or off any surface: one
@@ -78,9 +81,14 @@ def _same_pattern(level: float, spec: PatternSpec) -> PatternSpec:
     return spec
 
 
+def _same_rig(level: float, rig: simulate.Rig) -> simulate.Rig:
+    return rig
+
+
 @dataclass(frozen=True)
 class Factor:
-    """One swept factor: its levels, and how a level changes the scene and conditions, and the pattern."""
+    """One swept factor: its levels, and how a level changes the scene and conditions, the
+    pattern, and the rig."""
 
     name: str
     unit: str
@@ -88,6 +96,7 @@ class Factor:
     quick_levels: tuple[float, ...]
     scene: Callable[[float, simulate.Conditions], Scene]
     pattern: Callable[[float, PatternSpec], PatternSpec] = _same_pattern
+    rig: Callable[[float, simulate.Rig], simulate.Rig] = _same_rig
 
 
 def base_conditions(seed: int) -> simulate.Conditions:
@@ -106,6 +115,17 @@ def _checker(low: float, conditions: simulate.Conditions) -> Scene:
 
 def _precorrected(mismatch: float, spec: PatternSpec) -> PatternSpec:
     return spec.with_(gamma=1.0 if mismatch == BASE_GAMMA else BASE_GAMMA - mismatch)
+
+
+def _rolled(deg: float, rig: simulate.Rig) -> simulate.Rig:
+    """`rig` (a `simulate.virtual_rig`) with its projector turned `deg` degrees about its own
+    axis, its field of view kept."""
+    if deg == 0:
+        return rig
+    projector = rig.calibration.projector
+    fov = float(np.degrees(2 * np.arctan(projector.size[0] / 2 / rig.projector.K[0, 0])))
+    return simulate.virtual_rig(camera_size=rig.calibration.camera.size, projector_size=projector.size,
+                                projector_fov_deg=fov, projector_roll_deg=deg)
 
 
 def _tilt(axis: str) -> Callable[[float, simulate.Conditions], Scene]:
@@ -127,6 +147,8 @@ FACTORS = (
            lambda v, c: _sphere(c, projector_blur_px=v, camera_blur_px=v)),
     Factor("slope x", "tilt about x (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("x")),
     Factor("slope y", "tilt about y (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("y")),
+    Factor("projector roll", "turn about its axis (deg)", (0, 1, 2, 3, 5, 10), (0, 3, 10),
+           lambda v, c: _sphere(c), rig=_rolled),
 )
 
 
@@ -162,11 +184,12 @@ def score(result: ScanResult, truth: simulate.GroundTruth, spec: PatternSpec, ca
 
 
 class Sweep:
-    """Measures points of the sweeps on one rig for a set of patterns, each distinct point once.
+    """Measures points of the sweeps for a set of patterns, each distinct point once.
 
     Parameters
     ----------
     rig : Rig
+        The rig of every factor but those that change it (`Factor.rig`).
     specs : dict
         Pattern name -> spec (before a factor changes it).
     """
@@ -183,10 +206,11 @@ class Sweep:
         patterns' carrier SNR (`snr_db`) on the noise factor."""
         scene, conditions = factor.scene(level, base_conditions(seed))
         specs = {name: factor.pattern(level, spec) for name, spec in self.specs.items()}
+        rig = factor.rig(level, self.rig)
         with_snr = factor.name == "noise"
-        key = (scene, conditions, tuple(specs.values()))
+        key = (rig.calibration.projector.matrix.tobytes(), scene, conditions, tuple(specs.values()))
         if key not in self._measured or (with_snr and not self._measured[key][1]):
-            self._measured[key] = (self._measure(scene, conditions, specs, with_snr), with_snr)
+            self._measured[key] = (self._measure(rig, scene, conditions, specs, with_snr), with_snr)
         rows = [dict(row) for row in self._measured[key][0]]
         for row in rows:
             if not with_snr:
@@ -194,10 +218,10 @@ class Sweep:
             row.update(factor=factor.name, level=level, seed=seed)
         return rows
 
-    def _measure(self, scene: simulate.Surface, conditions: simulate.Conditions, specs: dict[str, PatternSpec],
-                 with_snr: bool) -> list[dict]:
-        calibration = self.rig.calibration
-        frames, truth = render_captures(self.rig, scene, list(specs.values()), conditions)
+    def _measure(self, rig: simulate.Rig, scene: simulate.Surface, conditions: simulate.Conditions,
+                 specs: dict[str, PatternSpec], with_snr: bool) -> list[dict]:
+        calibration = rig.calibration
+        frames, truth = render_captures(rig, scene, list(specs.values()), conditions)
         depth = stripe_depth(truth, self.yardstick, calibration)
         rows = []  # one per pattern, in the order of `specs`
         for (name, spec), capture in zip(specs.items(), frames):
@@ -213,7 +237,7 @@ class Sweep:
         if with_snr:
             single = [k for k, spec in enumerate(specs.values()) if spec.kind not in MULTI_FRAME_KINDS]
             spec_list = list(specs.values())
-            clean = self._clean_frames(scene, conditions, [spec_list[k] for k in single])
+            clean = self._clean_frames(scene, conditions, [spec_list[k] for k in single])  # noise: base rig
             for k, clean_frame in zip(single, clean):
                 rows[k]["snr_db"] = carrier_snr_db(clean_frame, frames[k], spec_list[k], truth.lit)
         return rows

@@ -20,7 +20,7 @@ from sliscan import patterns, sequences, simulate
 from sliscan._validate import read_image
 from sliscan.formats import mat5, npz, ply, premat5
 from sliscan.formats.calibration import read_matrix_txt, write_matrix_txt
-from sliscan.pipeline import Scanner
+from sliscan.pipeline import Scanner, stripe_tilt_deg
 from sliscan.reconstruct import triangulate_points
 from sliscan.types import Calibration, PatternSpec
 
@@ -118,6 +118,23 @@ def test_scan_of_the_plane(plane: tuple[Path, str]) -> None:
     half_stripe_mm = abs(z_edges[1] - z_edges[0]) / 2
     assert 1 < half_stripe_mm < 100
     assert abs(float(np.median(points[valid][:, 2])) - 800.0) < half_stripe_mm
+
+
+def test_a_rolled_projector_is_simulated_and_its_scan_warns(plane: tuple[Path, str], tmp_path: Path) -> None:
+    """`simulate --projector-roll 5` turns the virtual rig's projector (its rows then cross the
+    camera's at 5.1 degrees: `pipeline.stripe_tilt_deg`), and `scan` with that rig says so on
+    stderr, once, and still writes the points; the unturned rig of the module's scan said
+    nothing."""
+    folder, _ = plane
+    ok("simulate", "--pattern", folder / "cp.json", "--scene", "plane", "--camera", CAMERA_ARG, "--supersample", "1",
+       "--projector-roll", "5", "--write-rig", "rig.json", "-o", "capture.png", cwd=tmp_path)
+    assert 5.0 < stripe_tilt_deg(Calibration.load(tmp_path / "rig.json")) < 5.3
+    scan = ok("scan", "capture.png", "--pattern", folder / "cp.json", "--calibration", "rig.json", "--npz", "out.npz",
+              cwd=tmp_path)
+    assert scan.stderr.count("warning:") == 1 and "5.1 degrees" in scan.stderr
+    assert npz.read_scan_npz(tmp_path / "out.npz").valid.mean() > 0.5
+    quiet = sliscan("scan", "capture.png", "--pattern", "cp.json", "--calibration", "rig.json", cwd=folder)
+    assert quiet.returncode == 0 and "warning" not in quiet.stderr
 
 
 def test_simulate_writes_the_ground_truth(plane: tuple[Path, str]) -> None:

@@ -103,6 +103,23 @@ def test_projector_below():
     assert rig.working_distance_mm == 800.0
 
 
+@pytest.mark.parametrize("roll", [-6.0, 3.0])
+def test_a_rolled_projector_turns_its_rows_by_the_roll(roll):
+    """Along the camera's middle row on the plane facing it at the working distance, the
+    projector coordinates move at `roll` degrees to the projector's rows (clockwise as the camera
+    sees it, as documented), and the projector's centre still lands on the camera's: a turn
+    about the projector's own axis, nothing else (0.01 degrees: float64 rounding and the
+    pitched projector's keystone, which is zero on the row through the principal point)."""
+    rolled = virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR, projector_roll_deg=roll)
+    plain = virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR)
+    np.testing.assert_allclose(rolled.projector.centre, plain.projector.centre, atol=1e-9)
+    np.testing.assert_allclose(rolled.projector.axis, plain.projector.axis, atol=1e-12)
+    row = (CAMERA[1] - 1) / 2
+    points = 800 * rolled.camera.rays(np.array([0.25, 0.75]) * (CAMERA[0] - 1), np.full(2, row))
+    (xa, ya), (xb, yb) = rolled.calibration.projector.project(points)
+    assert np.degrees(np.arctan2(ya - yb, xb - xa)) == pytest.approx(roll, abs=0.01)
+
+
 def test_rig_from_any_scaled_calibration(rig):
     # A DLT calibration has arbitrary scale and sign; the decomposition must not care.
     cal = rig.calibration

@@ -45,7 +45,8 @@ from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
 from sliscan.formats.npz import write_npz_arrays
-from sliscan.pipeline import DECISIONS, METHODS, ScanChoices, Scanner, ScanStages
+from sliscan.pipeline import (DECISIONS, MAX_STRIPE_TILT_DEG, METHODS, ScanChoices, Scanner, ScanStages,
+                              baseline_direction, stripe_tilt_deg)
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
@@ -751,6 +752,9 @@ Examples:
               help=f"{', '.join(SCENES)}, or the PREFIX of a mat5 scan (PREFIXX.byt ...).")
 @_calibration_options
 @_camera_option(help=f"Camera size of the virtual rig (or of --camera-matrix) [{THESIS_CAMERA[0]}x{THESIS_CAMERA[1]}].")
+@click.option("--projector-roll", type=click.FloatRange(min=-44, max=44), default=0.0, show_default=True,
+              help="The virtual rig's projector turned about its own axis, degrees (clockwise as the camera sees "
+                   "it), as a real mounting leaves it.")
 @click.option("--write-rig", type=OUTPUT_FILE, help="Save the calibration used (JSON).")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True,
               help="Capture image (8-bit PNG); for a multi-frame pattern OUT.png means OUT_00.png, OUT_01.png, "
@@ -780,8 +784,9 @@ Examples:
               help="With --motion: rotation per frame about the vertical axis through the working point, degrees.")
 @_overwrite_option
 def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camera_matrix: Path | None,
-                 projector_matrix: Path | None, camera: tuple[int, int] | None, write_rig: Path | None,
-                 output: Path, truth: Path | None, projector_view: Path | None, camera_view: Path | None,
+                 projector_matrix: Path | None, camera: tuple[int, int] | None, projector_roll: float,
+                 write_rig: Path | None, output: Path, truth: Path | None, projector_view: Path | None,
+                 camera_view: Path | None,
                  motion_frames: int | None, velocity: tuple[float, ...], spin: float, overwrite: bool,
                  **physics: Any) -> None:
     """Render a camera capture of a pattern on a scene with the virtual rig.
@@ -796,6 +801,8 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     """
     if calibration is not None and camera is not None:
         raise click.UsageError("--camera sets the virtual rig's size; a calibration JSON has its own")
+    if projector_roll and (calibration is not None or camera_matrix is not None or projector_matrix is not None):
+        raise click.UsageError("--projector-roll turns the virtual rig's projector; a calibration has its own")
     mat5_prefix = None if scene in SCENES else Path(scene)
     spec = PatternSpec.load(pattern_path)
     multi = spec.kind in MULTI_FRAME_KINDS
@@ -818,7 +825,8 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     calib = _load_calibration(calibration, camera_matrix, projector_matrix, camera_size=camera,
                               projector_size=spec.projector_size)
     if calib is None:
-        rig = simulate.virtual_rig(camera_size=camera or THESIS_CAMERA, projector_size=spec.projector_size)
+        rig = simulate.virtual_rig(camera_size=camera or THESIS_CAMERA, projector_size=spec.projector_size,
+                                   projector_roll_deg=projector_roll)
     else:
         source = _calibration_source(calibration, camera_matrix, projector_matrix)
         _check_projector(spec, pattern_path, calib, source)
@@ -993,7 +1001,20 @@ def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationAr
         (w, h), (cw, ch) = size, calib.camera.size
         raise InputError(f"{capture}: the capture is {w}x{h} but the camera of {source} is {cw}x{ch}")
     _check_projector(spec, pattern_path, calib, source)
+    if spec.kind not in MULTI_FRAME_KINDS:
+        _warn_stripe_tilt(calib, spec.orientation, source)
     return calib, source
+
+
+def _warn_stripe_tilt(calib: Calibration, orientation: str, source: object) -> None:
+    """A warning on stderr where the rig's coded lines cross the camera's lines at more than
+    `MAX_STRIPE_TILT_DEG` (`stripe_tilt_deg`): single-shot patterns lose accuracy there."""
+    tilt = stripe_tilt_deg(calib, orientation)
+    if tilt > MAX_STRIPE_TILT_DEG:
+        lines, axis = ("rows", "rows") if orientation == "rows" else ("columns", "columns")
+        click.echo(f"warning: {source}: the projector's {lines} cross the camera's {axis} at up to {tilt:.1f} degrees; "
+                   f"single-shot scans lose accuracy beyond {MAX_STRIPE_TILT_DEG:g} (median error about 2x at 5 degrees, "
+                   "3x at 10 on the virtual rig): turn the projector or the camera about its axis", err=True)
 
 
 @contextlib.contextmanager
@@ -1255,9 +1276,9 @@ def calibrate(g_file: Any, camera: tuple[int, int] | None, projector: tuple[int,
         if path is not None:
             write_matrix_txt(path, device.matrix)
             written.append(str(path))
-    res = calib.extra["residuals"]
-    residuals = "; ".join(f"{name} RMS {r['rms_px']:.3g} px, max {r['max_px']:.3g} px" for name, r in res.items())
-    click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} points; reprojection {residuals}")
+    click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} points; reprojection "
+               f"{_residual_summary(calib)}")
+    _warn_stripe_tilt(calib, baseline_direction(calib), output)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1374,6 +1395,7 @@ def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path
                                title=f"calibrate-target: {method} DLT, {len(rows)} circles")
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} circles (perspective bias "
                f"{calib.extra['perspective_bias_px']:.2g} px corrected); reprojection {_residual_summary(calib)}")
+    _warn_stripe_tilt(calib, baseline_direction(calib), output)
 
 
 def _board_table(calib: Calibration, poses: Sequence[Path]) -> Table:
@@ -1525,6 +1547,7 @@ def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, 
         click.echo(f"note: the camera's principal point is uncertain by more than {_PRINCIPAL_POINT_ADVICE_PX:g} px, "
                    "which turns the whole calibration's frame by that over the focal length: take more poses "
                    "with the board filling most of the view (out to the image corners)", err=True)
+    _warn_stripe_tilt(calib, baseline_direction(calib), output)
 
 
 # --------------------------------------------------------------------------------------------

@@ -125,6 +125,43 @@ def baseline_direction(calibration: Calibration) -> str:
     return "rows" if abs(offset[1]) >= abs(offset[0]) else "columns"
 
 
+#: Coded lines crossing the camera's carrier direction at more than this angle (degrees,
+#: `stripe_tilt_deg`) cost single-shot accuracy: on the virtual rig (1296x972, the sphere, the
+#: projector turned about its axis; docs/accuracy.md, "Projector roll") the median error of
+#: sliscan's pattern grows 1.1x at 2 degrees, 1.4x at 3, 1.9x at 5 and 3.3x at 10 (the phase
+#: pattern's 1.2x, 1.4x, 1.8x, 2.8x).
+MAX_STRIPE_TILT_DEG = 2.0
+
+
+def stripe_tilt_deg(calibration: Calibration, orientation: str = "rows") -> float:
+    """The largest angle, in degrees, at which the projector's coded lines (its rows for
+    ``"rows"``, its columns for ``"columns"``) cross the camera's carrier direction (camera
+    ``x``, or ``y``), over a 5 x 5 lattice spanning the camera's frame.
+
+    A single-shot pattern is demodulated along the camera's lines: the more its stripes cross
+    them, the more a window straddles a stripe border (`MAX_STRIPE_TILT_DEG`).  Measured on
+    distant surfaces (the homography of the plane at infinity, ``P_p[:, :3] P_c[:, :3]^-1``):
+    what the rig's rotation between the two devices does (a projector turned about its axis,
+    or toward the object beside the camera), whatever the scene adds; lenses taken as ideal.
+
+    >>> from sliscan import simulate
+    >>> rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768), projector_roll_deg=4.0)
+    >>> round(stripe_tilt_deg(rig.calibration), 1)  # 4 at the centre, a little more at the corners
+    4.1
+    """
+    cam, proj = calibration.camera, calibration.projector
+    w, h = cam.size
+    u, v = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    to_projector = proj.matrix[:, :3] @ np.linalg.inv(cam.matrix[:, :3])  # camera pixel -> projector pixel, at infinity
+    q = to_projector @ pixels
+    coded = 1 if orientation == "rows" else 0
+    # gradient of the coded coordinate (q[coded] / q[2]) with respect to the camera pixel
+    gradient = (to_projector[coded, :2, None] * q[2] - to_projector[2, :2, None] * q[coded]) / q[2] ** 2
+    along, across = (gradient[0], gradient[1]) if orientation == "rows" else (gradient[1], gradient[0])
+    return float(np.degrees(np.arctan2(np.abs(along), np.abs(across))).max())
+
+
 #: `Scanner` methods (`sliscan scan --method`): the demodulators of `sliscan.demodulate` and the
 #: real-time path of `sliscan.fastscan`.
 METHODS = ("window", "bandpass", "baseband")

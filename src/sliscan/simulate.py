@@ -329,6 +329,7 @@ def virtual_rig(
     margin: float = 0.05,
     camera_distortion: ArrayLike | None = None,
     projector_distortion: ArrayLike | None = None,
+    projector_roll_deg: float = 0.0,
 ) -> Rig:
     """The thesis's rig (section 4.2): a projector displaced vertically from the camera.
 
@@ -366,6 +367,11 @@ def virtual_rig(
         Lens distortion ``k1, k2, p1, p2, k3`` (OpenCV's model, `sliscan.lens`) of each device,
         relative to its intrinsics; default none.  The default projector field of view then
         covers the camera's view through both lenses.
+    projector_roll_deg : float
+        The projector turned about its own optical axis by this angle (degrees; positive turns
+        its image clockwise as the camera sees it), as a real rig's mounting leaves it: the
+        stripes then cross the camera's lines obliquely everywhere.  The default field of view
+        still covers the camera's view.
 
     Returns
     -------
@@ -389,6 +395,8 @@ def virtual_rig(
             raise InputError(f"{name} must lie in (0, 180), got {fov}")
     if not 0 <= margin < 1:
         raise InputError(f"margin must lie in [0, 1), got {margin}")
+    if not (math.isfinite(projector_roll_deg) and abs(projector_roll_deg) < 45):
+        raise InputError(f"projector_roll_deg must lie in (-45, 45), got {projector_roll_deg}")
     (wc, hc), (wp, hp) = camera_size, projector_size
     camera = Pinhole(K=_intrinsics(_focal(wc, camera_fov_deg), wc, hc), R=np.eye(3), t=np.zeros(3), size=(wc, hc),
                      distortion=None if camera_distortion is None else np.asarray(camera_distortion, np.float64))
@@ -406,6 +414,8 @@ def virtual_rig(
     else:
         y_axis = np.array([0.0, 1.0, 0.0])
         R = np.stack([np.cross(y_axis, z_axis), y_axis, z_axis])
+    cos, sin = math.cos(math.radians(projector_roll_deg)), math.sin(math.radians(projector_roll_deg))
+    R = np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]]) @ R  # about the projector's own axis
     if projector_fov_deg is None:
         corners = np.array([[-0.5, -0.5], [wc - 0.5, -0.5], [-0.5, hc - 0.5], [wc - 0.5, hc - 0.5]])
         world = distance_mm * camera.rays(corners[:, 0], corners[:, 1])
