@@ -244,6 +244,8 @@ def test_scan_report_option_writes_the_page(run: Path) -> None:
     page = (run / "scan.html").read_text()
     assert figure_ids(page) == COMPOSITE_FIGURES - {"error", "error-histogram"}  # no truth given to scan
     assert "capture.png" in page and "window" in page
+    # the virtual rig is level: its rows run along the camera's (`pipeline.stripe_tilt_deg`)
+    assert "the projector&#x27;s rows cross the camera&#x27;s at up to 0.0 degrees" in page
 
 
 def test_report_command_with_truth(run: Path, tmp_path: Path) -> None:

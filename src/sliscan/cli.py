@@ -978,6 +978,9 @@ def _write_scan_report(path: Path, inputs: _ScanInputs, result: ScanResult, stag
     facts = {"capture": inputs.capture, "pattern": f"{inputs.pattern_path}: {pattern}", "calibration": inputs.source}
     if spec.kind not in MULTI_FRAME_KINDS:
         facts["demodulator"] = inputs.scanner.method
+        facts["stripe tilt"] = (f"the projector's {spec.orientation} cross the camera's at up to "
+                                f"{stripe_tilt_deg(inputs.calib, spec.orientation):.1f} degrees "
+                                f"(keep under {MAX_STRIPE_TILT_DEG:g})")
     frames = np.stack(inputs.frames)
     page = report_module.scan_page(report_module.ScanReport(
         frames=frames, spec=spec, calibration=inputs.calib, result=result, stages=stages,
