@@ -137,6 +137,27 @@ def test_a_rolled_projector_is_simulated_and_its_scan_warns(plane: tuple[Path, s
     assert quiet.returncode == 0 and "warning" not in quiet.stderr
 
 
+def test_a_pattern_coding_the_lines_along_the_baseline_is_told_which_to_code(plane: tuple[Path, str],
+                                                                              tmp_path: Path) -> None:
+    """With the camera beside the projector the projector's rows do not move with depth: a rows
+    pattern scanned there gets a warning naming the orientation to use (before whatever the
+    scan makes of it: here its carriers, running along the baseline, smear with depth and are
+    not found); the columns pattern the warning asks for scans that rig without one."""
+    folder, _ = plane
+    simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR,
+                         baseline_axis="horizontal").calibration.save(tmp_path / "side.json")
+    ok("pattern", "composite", "--projector", PROJECTOR_ARG, "--orientation", "columns", "-o", "cols.png", cwd=tmp_path)
+    for pattern in (folder / "cp.json", "cols.json"):
+        ok("simulate", "--pattern", pattern, "--scene", "plane", "--calibration", "side.json", "--supersample", "1",
+           "-o", "capture.png", "--overwrite", cwd=tmp_path)
+        scan = sliscan("scan", "capture.png", "--pattern", pattern, "--calibration", "side.json", cwd=tmp_path)
+        if pattern == "cols.json":
+            assert scan.returncode == 0 and "warning" not in scan.stderr
+        else:
+            first = scan.stderr.splitlines()[0]
+            assert first.startswith("warning: ") and "make the pattern with --orientation columns" in first
+
+
 def test_simulate_writes_the_ground_truth(plane: tuple[Path, str]) -> None:
     folder, _ = plane
     with np.load(folder / "truth.npz") as truth:

@@ -1005,7 +1005,14 @@ def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationAr
         raise InputError(f"{capture}: the capture is {w}x{h} but the camera of {source} is {cw}x{ch}")
     _check_projector(spec, pattern_path, calib, source)
     if spec.kind not in MULTI_FRAME_KINDS:
-        _warn_stripe_tilt(calib, spec.orientation, source)
+        across = baseline_direction(calib)
+        if spec.orientation != across:
+            beside = "beside" if across == "columns" else "above or below"
+            click.echo(f"warning: {pattern_path}: the pattern codes the projector's {spec.orientation}, but with the "
+                       f"camera {beside} the projector ({source}) it is the projector's {across} that change with "
+                       f"depth along a camera ray: make the pattern with --orientation {across}", err=True)
+        else:
+            _warn_stripe_tilt(calib, spec.orientation, source)
     return calib, source
 
 
