@@ -1004,16 +1004,24 @@ def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationAr
         (w, h), (cw, ch) = size, calib.camera.size
         raise InputError(f"{capture}: the capture is {w}x{h} but the camera of {source} is {cw}x{ch}")
     _check_projector(spec, pattern_path, calib, source)
-    if spec.kind not in MULTI_FRAME_KINDS:
-        across = baseline_direction(calib)
-        if spec.orientation != across:
-            beside = "beside" if across == "columns" else "above or below"
-            click.echo(f"warning: {pattern_path}: the pattern codes the projector's {spec.orientation}, but with the "
-                       f"camera {beside} the projector ({source}) it is the projector's {across} that change with "
-                       f"depth along a camera ray: make the pattern with --orientation {across}", err=True)
-        else:
-            _warn_stripe_tilt(calib, spec.orientation, source)
+    _warn_rig(spec, pattern_path, calib, source)
     return calib, source
+
+
+def _warn_rig(spec: PatternSpec, pattern_path: Path, calib: Calibration, source: object) -> None:
+    """Warnings on stderr where the rig will not scan a single-shot pattern well: the pattern
+    codes the projector lines that run along the baseline (they do not move with depth), or
+    its coded lines cross the camera's obliquely (`_warn_stripe_tilt`)."""
+    if spec.kind in MULTI_FRAME_KINDS:
+        return
+    across = baseline_direction(calib)
+    if spec.orientation != across:
+        beside = "beside" if across == "columns" else "above or below"
+        click.echo(f"warning: {pattern_path}: the pattern codes the projector's {spec.orientation}, but with the "
+                   f"camera {beside} the projector ({source}) it is the projector's {across} that change with "
+                   f"depth along a camera ray: make the pattern with --orientation {across}", err=True)
+    else:
+        _warn_stripe_tilt(calib, spec.orientation, source)
 
 
 def _warn_stripe_tilt(calib: Calibration, orientation: str, source: object) -> None:

@@ -30,7 +30,7 @@ from sliscan.calibrate import MIN_BOARD_VIEWS
 from sliscan.cli import (ALBEDOS, FLOATS, INPUT_FILE, OUTPUT_FILE, POSITIVE, SCENES, SIZE, _board,
                          _board_options, _check_outputs, _check_projector, _conditions, _options, _overwrite_option,
                          _progress, _run_calibrate_board, _run_calibrate_target, _scan_choices_options, _sequence_spec,
-                         cli)
+                         _warn_rig, cli)
 from sliscan.formats.calibration import load_calibration
 from sliscan.pipeline import METHODS, ScanChoices, Scanner
 from sliscan.targets import Board, CircleTarget
@@ -502,6 +502,7 @@ def live_cmd(pattern_path: Path, calibration: Path, camera_id: str, screen: str,
         raise click.UsageError(f"--velocity takes 3 numbers (mm per frame along X, Y, Z), got {len(velocity)}")
     calib = load_calibration(calibration)
     _check_projector(spec, pattern_path, calib, str(calibration))
+    _warn_rig(spec, pattern_path, calib, calibration)
     recorder = None
     if record is not None:
         earlier = record.is_dir() and any(record.glob("frame_*"))
