@@ -1029,8 +1029,8 @@ def _warn_stripe_tilt(calib: Calibration, orientation: str, source: object) -> N
     `MAX_STRIPE_TILT_DEG` (`stripe_tilt_deg`): single-shot patterns lose accuracy there."""
     tilt = stripe_tilt_deg(calib, orientation)
     if tilt > MAX_STRIPE_TILT_DEG:
-        lines, axis = ("rows", "rows") if orientation == "rows" else ("columns", "columns")
-        click.echo(f"warning: {source}: the projector's {lines} cross the camera's {axis} at up to {tilt:.1f} degrees; "
+        click.echo(f"warning: {source}: the projector's {orientation} cross the camera's {orientation} at up to "
+                   f"{tilt:.1f} degrees; "
                    f"single-shot scans lose accuracy beyond {MAX_STRIPE_TILT_DEG:g} (median error about 2x at 5 degrees, "
                    "3x at 10 on the virtual rig): turn the projector or the camera about its axis", err=True)
 
