@@ -158,6 +158,28 @@ def test_a_pattern_coding_the_lines_along_the_baseline_is_told_which_to_code(pla
             assert first.startswith("warning: ") and "make the pattern with --orientation columns" in first
 
 
+def test_a_pattern_made_for_a_calibration_fits_its_rig(plane: tuple[Path, str], tmp_path: Path) -> None:
+    """`pattern composite --calibration` takes the projector's size and the orientation the
+    rig's baseline needs (columns with the camera beside the projector), and warns when the
+    rig's camera will not resolve the pattern: the phase channel's finest carrier, 224 cycles
+    per 1024 px, spans 2.8 camera px per period at 640x480 (`pipeline.carrier_period_px`;
+    under `MIN_CARRIER_PERIOD_PX`); the default pattern's 128 cycles, 4.9, does not warn."""
+    folder, _ = plane
+    simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR,
+                         baseline_axis="horizontal").calibration.save(tmp_path / "beside.json")
+    made = ok("pattern", "composite", "--calibration", "beside.json", "-o", "side.png", cwd=tmp_path)
+    assert "warning" not in made.stderr
+    side = PatternSpec.load(tmp_path / "side.json")
+    assert side.orientation == "columns" and side.projector_size == PROJECTOR
+    assert side == patterns.default_spec(PROJECTOR, orientation="columns").with_(image="side.png")
+    phase = ok("pattern", "composite", "--calibration", folder / "rig.json", "--phase", "-o", "phase.png", cwd=tmp_path)
+    assert phase.stderr.count("warning:") == 1 and "spans 2.8 camera px per period" in phase.stderr
+    assert PatternSpec.load(tmp_path / "phase.json").orientation == "rows"
+    usage = sliscan("pattern", "composite", "-o", "none.png", cwd=tmp_path)
+    assert usage.returncode == 2 and "--projector WxH, or --calibration" in usage.stderr
+    assert not (tmp_path / "none.png").exists()
+
+
 def test_simulate_writes_the_ground_truth(plane: tuple[Path, str]) -> None:
     folder, _ = plane
     with np.load(folder / "truth.npz") as truth:
@@ -449,6 +471,10 @@ BAD_CASES: dict[str, tuple[tuple[str, ...], str]] = {
                           "-o", "o.json"), "short.byt"),
     "bad WxH": (("pattern", "composite", "--projector", "1024by768", "-o", "o.png"), "--projector"),
     "unknown scene": (("simulate", "--pattern", "cp.json", "--scene", "sphre", "-o", "o.png"), "sphre"),
+    "pattern for another projector than the calibration's": (("pattern", "composite", "--calibration", "rig.json",
+                                                               "--projector", "800x600", "-o", "o.png"), "rig.json"),
+    "pattern with a NaN calibration": (("pattern", "composite", "--calibration", "nan.json", "-o", "o.png"),
+                                       "nan.json"),
 }
 
 

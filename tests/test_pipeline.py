@@ -7,7 +7,7 @@ from sliscan import InputError, PatternSpec, Scanner, ScanResult, patterns, simu
 from sliscan.types import Calibration, Device
 from sliscan.evaluate import accuracy, oracle_points, stripe_depth, true_stripes
 from sliscan.patterns import stripe_center
-from sliscan.pipeline import baseline_direction, device_centre, measurable, stripe_tilt_deg
+from sliscan.pipeline import baseline_direction, carrier_period_px, device_centre, measurable, stripe_tilt_deg
 from sliscan.reconstruct import MeasurableTest, Triangulator
 from sliscan.sequences import decode_frames, render_frames
 
@@ -218,6 +218,21 @@ def test_stripe_tilt_is_the_projector_roll_and_zero_on_the_thesis_rig():
         rolled = simulate.virtual_rig(camera_size=(320, 240), projector_size=(256, 192), baseline_axis=axis,
                                       projector_roll_deg=-3.0)
         assert 3.0 <= stripe_tilt_deg(rolled.calibration, orientation) < 3.3
+
+
+def test_carrier_period_is_the_focal_ratio_times_the_projected_period():
+    """On distant surfaces a projector pixel spans f_camera / f_projector camera pixels, so the
+    default pattern's finest carrier (128 cycles per 1024 px: 8 projector px) spans 8 times that
+    at the frame's centre; the least over the frame is 8 % under it (measured 0.922: the pitched
+    projector's keystone; 0.85-1 allowed), and twice the camera's pixels on the same field of
+    view give twice the period (1e-3: the lattice's half-pixel offsets)."""
+    spec = patterns.default_spec((1024, 768))
+    small, large = (simulate.virtual_rig(camera_size=size, projector_size=(1024, 768)) for size in ((640, 480),
+                                                                                                   (1280, 960)))
+    centre = 8 * small.camera.K[0, 0] / small.projector.K[0, 0]
+    assert 0.85 < carrier_period_px(spec, small.calibration) / centre < 1.0
+    assert carrier_period_px(spec, large.calibration) / carrier_period_px(spec, small.calibration) == \
+        pytest.approx(2.0, rel=1e-3)
 
 
 def test_both_orientations_triangulate_along_the_baseline():

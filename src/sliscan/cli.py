@@ -45,8 +45,8 @@ from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
 from sliscan.formats.npz import write_npz_arrays
-from sliscan.pipeline import (DECISIONS, MAX_STRIPE_TILT_DEG, METHODS, ScanChoices, Scanner, ScanStages,
-                              baseline_direction, stripe_tilt_deg)
+from sliscan.pipeline import (DECISIONS, MAX_STRIPE_TILT_DEG, METHODS, MIN_CARRIER_PERIOD_PX, ScanChoices, Scanner,
+                              ScanStages, baseline_direction, carrier_period_px, stripe_tilt_deg)
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
@@ -361,7 +361,11 @@ def pattern() -> None:
 
 
 _pattern_options = _options(
-    _projector_option(required=True, help="Projector resolution, e.g. 1024x768."),
+    _projector_option(help="Projector resolution, e.g. 1024x768 [the calibration's projector with --calibration]."),
+    click.option("--calibration", type=INPUT_FILE,
+                 help="The rig's calibration JSON: the projector's size and the orientation its baseline needs "
+                      "unless given, and warnings where its camera will not resolve the pattern or sees the "
+                      "projector's lines tilted."),
     click.option("--thesis", is_flag=True,
                  help="Start from the thesis's pattern (4 bits on carriers 32, 64, 96, 128 per 1024 px, zero "
                       "code kept) instead of sliscan's best."),
@@ -383,8 +387,9 @@ _pattern_options = _options(
     click.option("--gamma", type=POSITIVE,
                  help="Gamma pre-correction of the projector [1: none]; a pre-corrected composite pattern "
                       "spans the whole light range (0-1) unless --ap, --bp or --drive say otherwise."),
-    click.option("--orientation", type=click.Choice(["rows", "columns"]), default="rows", show_default=True,
-                 help="Projector coordinate the stripes code."),
+    click.option("--orientation", type=click.Choice(["rows", "columns"]),
+                 help="Projector coordinate the stripes code [rows; with --calibration the one its baseline "
+                      "needs]."),
     click.option("--pilot", type=PilotType(), help="Pilot carrier frequency, or 'none'."),
     click.option("--phase", is_flag=True,
                  help="Add a 3-step phase channel (sub-stripe depth from the same frame): the fringe's "
@@ -473,6 +478,26 @@ def _pattern_spec(kind: str, *, projector: tuple[int, int], thesis: bool, bits: 
     return spec if drive is None else patterns.stretch_drive(spec, *drive)
 
 
+def _write_composite(kind: str, output: Path, overwrite: bool, options: dict[str, Any]) -> None:
+    """Write the single-shot pattern of `kind` that the `sliscan pattern` `options` describe,
+    the projector's size and the orientation taken from ``--calibration``'s rig where not given,
+    and warn (`_warn_rig`) where that rig will not scan it well."""
+    calibration = options.pop("calibration")
+    calib = None if calibration is None else load_calibration(calibration)
+    if calib is None and options["projector"] is None:
+        raise click.UsageError("give --projector WxH, or --calibration rig.json")
+    if calib is not None:
+        if options["projector"] is not None and tuple(options["projector"]) != calib.projector.size:
+            (pw, ph), (cw, ch) = options["projector"], calib.projector.size
+            raise InputError(f"{calibration}: its projector is {cw}x{ch}, not the {pw}x{ph} of --projector")
+        options["projector"] = calib.projector.size
+        options["orientation"] = options["orientation"] or baseline_direction(calib)
+    spec = _pattern_spec(kind, **{**options, "orientation": options["orientation"] or "rows"})
+    _write_pattern(output, spec, overwrite=overwrite, inputs=[options["characterization"], calibration])
+    if calib is not None:
+        _warn_rig(spec, output.with_suffix(".json"), calib, calibration)
+
+
 def _write_pattern(output: Path, spec: PatternSpec, *, overwrite: bool, inputs: Sequence[Path | None] = ()) -> None:
     """Write a pattern image and its JSON (refusing existing files unless `overwrite`); print what was written."""
     _check_outputs([output, output.with_suffix(".json")], inputs, overwrite=overwrite)
@@ -497,14 +522,14 @@ def pattern_composite(output: Path, overwrite: bool, **options: Any) -> None:
     with the most significant bit on the highest, no all-zero code).  --thesis, or --bits 4
     --carriers 32,64,96,128, gives the thesis's pattern.
     """
-    _write_pattern(output, _pattern_spec("composite", **options), overwrite=overwrite, inputs=[options["characterization"]])
+    _write_composite("composite", output, overwrite, options)
 
 
 @pattern.command("carrier-only", epilog=_PATTERN_EPILOG.format(cmd="carrier-only"))
 @_pattern_options
 def pattern_carrier_only(output: Path, overwrite: bool, **options: Any) -> None:
     """Every carrier on everywhere (thesis fig. 3.9): for measuring the carriers' roll-off."""
-    _write_pattern(output, _pattern_spec("carrier_only", **options), overwrite=overwrite, inputs=[options["characterization"]])
+    _write_composite("carrier_only", output, overwrite, options)
 
 
 @pattern.command("modified", epilog=_PATTERN_EPILOG.format(cmd="modified") + """
@@ -516,7 +541,7 @@ def pattern_carrier_only(output: Path, overwrite: bool, **options: Any) -> None:
               help="Amplitude of that sine [one carrier's; B_p shrinks to keep the pattern in [0, 1]].")
 def pattern_modified(output: Path, overwrite: bool, **options: Any) -> None:
     """The modified composite pattern (thesis section 6.2): composite plus a sine along the phase direction."""
-    _write_pattern(output, _pattern_spec("modified_composite", **options), overwrite=overwrite, inputs=[options["characterization"]])
+    _write_composite("modified_composite", output, overwrite, options)
 
 
 def _write_sequence(output: Path, spec: PatternSpec, *, overwrite: bool) -> None:
@@ -1009,11 +1034,18 @@ def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationAr
 
 
 def _warn_rig(spec: PatternSpec, pattern_path: Path, calib: Calibration, source: object) -> None:
-    """Warnings on stderr where the rig will not scan a single-shot pattern well: the pattern
-    codes the projector lines that run along the baseline (they do not move with depth), or
-    its coded lines cross the camera's obliquely (`_warn_stripe_tilt`)."""
+    """Warnings on stderr where the rig will not scan a single-shot pattern well: its camera
+    does not resolve the finest carrier (`carrier_period_px`), the pattern codes the projector
+    lines that run along the baseline (they do not move with depth), or its coded lines cross
+    the camera's obliquely (`_warn_stripe_tilt`)."""
     if spec.kind in MULTI_FRAME_KINDS:
         return
+    period = carrier_period_px(spec, calib)
+    if period < MIN_CARRIER_PERIOD_PX:
+        click.echo(f"warning: {pattern_path}: its finest carrier ({max(spec.all_carriers):g} cycles per "
+                   f"{spec.orthogonal_lines} projector px) spans {period:.1f} camera px per period with {source}; "
+                   f"under {MIN_CARRIER_PERIOD_PX:g} the camera does not resolve it: use coarser carriers (fewer "
+                   "bits, no --phase) or more camera pixels across the projected area", err=True)
     across = baseline_direction(calib)
     if spec.orientation != across:
         beside = "beside" if across == "columns" else "above or below"

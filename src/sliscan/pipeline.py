@@ -132,34 +132,65 @@ def baseline_direction(calibration: Calibration) -> str:
 #: pattern's 1.2x, 1.4x, 1.8x, 2.8x).
 MAX_STRIPE_TILT_DEG = 2.0
 
+#: A carrier finer than this many camera pixels per period (`carrier_period_px`) is not
+#: demodulated reliably: the phase pattern (finest carrier 224 cycles per 1024 px) on the
+#: virtual rig's sphere (smooth albedo, 1 px blurs, gamma 2.2) was 45 / 50 / 84 / 90 % complete
+#: at 3.1 / 3.4 / 3.7 / 4.2 camera pixels per period (cameras 704x528 to 960x720; 5.7 at
+#: 1296x972, 93 %).
+MIN_CARRIER_PERIOD_PX = 3.5
+
+
+def _projector_gradients(calibration: Calibration) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """How the projector's ``(xp, yp)`` change with the camera pixel on distant surfaces (the
+    homography of the plane at infinity, ``P_p[:, :3] P_c[:, :3]^-1``: the rig's rotation
+    between the two devices, whatever the scene adds; lenses taken as ideal), at a 5 x 5
+    lattice spanning the camera's frame: ``d[xp or yp] / d[x]`` and ``d[xp or yp] / d[y]``,
+    each ``(2, 25)``."""
+    cam, proj = calibration.camera, calibration.projector
+    w, h = cam.size
+    u, v = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    to_projector = proj.matrix[:, :3] @ np.linalg.inv(cam.matrix[:, :3])  # camera pixel -> projector pixel
+    q = to_projector @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    # quotient rule on (q[0] / q[2], q[1] / q[2]); axis 1 of `to_projector[:, :2]` is d/dx, d/dy
+    gradient = (to_projector[:2, :2, None] * q[2] - to_projector[2, None, :2, None] * q[:2, None]) / q[2] ** 2
+    return gradient[:, 0], gradient[:, 1]
+
 
 def stripe_tilt_deg(calibration: Calibration, orientation: str = "rows") -> float:
     """The largest angle, in degrees, at which the projector's coded lines (its rows for
     ``"rows"``, its columns for ``"columns"``) cross the camera's carrier direction (camera
-    ``x``, or ``y``), over a 5 x 5 lattice spanning the camera's frame.
+    ``x``, or ``y``), over a 5 x 5 lattice spanning the camera's frame (`_projector_gradients`).
 
     A single-shot pattern is demodulated along the camera's lines: the more its stripes cross
-    them, the more a window straddles a stripe border (`MAX_STRIPE_TILT_DEG`).  Measured on
-    distant surfaces (the homography of the plane at infinity, ``P_p[:, :3] P_c[:, :3]^-1``):
-    what the rig's rotation between the two devices does (a projector turned about its axis,
-    or toward the object beside the camera), whatever the scene adds; lenses taken as ideal.
+    them, the more a window straddles a stripe border (`MAX_STRIPE_TILT_DEG`).
 
     >>> from sliscan import simulate
     >>> rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768), projector_roll_deg=4.0)
     >>> round(stripe_tilt_deg(rig.calibration), 1)  # 4 at the centre, a little more at the corners
     4.1
     """
-    cam, proj = calibration.camera, calibration.projector
-    w, h = cam.size
-    u, v = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
-    pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
-    to_projector = proj.matrix[:, :3] @ np.linalg.inv(cam.matrix[:, :3])  # camera pixel -> projector pixel, at infinity
-    q = to_projector @ pixels
+    along_x, along_y = _projector_gradients(calibration)
     coded = 1 if orientation == "rows" else 0
-    # gradient of the coded coordinate (q[coded] / q[2]) with respect to the camera pixel
-    gradient = (to_projector[coded, :2, None] * q[2] - to_projector[2, :2, None] * q[coded]) / q[2] ** 2
-    along, across = (gradient[0], gradient[1]) if orientation == "rows" else (gradient[1], gradient[0])
-    return float(np.degrees(np.arctan2(np.abs(along), np.abs(across))).max())
+    along, across = (along_x, along_y) if orientation == "rows" else (along_y, along_x)
+    return float(np.degrees(np.arctan2(np.abs(along[coded]), np.abs(across[coded]))).max())
+
+
+def carrier_period_px(spec: PatternSpec, calibration: Calibration) -> float:
+    """Camera pixels per period of `spec`'s finest carrier along the camera's carrier direction,
+    the least over a 5 x 5 lattice spanning the frame (`_projector_gradients`: distant
+    surfaces; a surface turned away compresses it further).  Under `MIN_CARRIER_PERIOD_PX`
+    the camera does not resolve the pattern.
+
+    >>> from sliscan import patterns, simulate
+    >>> rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768))
+    >>> round(carrier_period_px(patterns.default_spec((1024, 768)), rig.calibration), 1)  # 128 cycles
+    4.9
+    """
+    along_x, along_y = _projector_gradients(calibration)
+    other = 0 if spec.orientation == "rows" else 1  # the projector coordinate the carriers run along
+    along = along_x[other] if spec.orientation == "rows" else along_y[other]
+    finest = max(spec.all_carriers) / spec.orthogonal_lines  # cycles per projector pixel
+    return float(1.0 / (finest * np.abs(along).max()))
 
 
 #: `Scanner` methods (`sliscan scan --method`): the demodulators of `sliscan.demodulate` and the
