@@ -491,8 +491,8 @@ def _write_composite(kind: str, output: Path, overwrite: bool, options: dict[str
             (pw, ph), (cw, ch) = options["projector"], calib.projector.size
             raise InputError(f"{calibration}: its projector is {cw}x{ch}, not the {pw}x{ph} of --projector")
         options["projector"] = calib.projector.size
-        options["orientation"] = options["orientation"] or baseline_direction(calib)
-    spec = _pattern_spec(kind, **{**options, "orientation": options["orientation"] or "rows"})
+    options["orientation"] = options["orientation"] or ("rows" if calib is None else baseline_direction(calib))
+    spec = _pattern_spec(kind, **options)
     _write_pattern(output, spec, overwrite=overwrite, inputs=[options["characterization"], calibration])
     if calib is not None:
         _warn_rig(spec, output.with_suffix(".json"), calib, calibration)
