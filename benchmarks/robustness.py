@@ -21,7 +21,10 @@ frames); classic Gray code with 4-step phase refinement, 7 bits on 8-row codes (
   compressed) and about y (carriers compressed), 0-60 degrees;
 * projector roll: the projector turned about its own optical axis, 0-10 degrees, as a rig's
   mounting leaves it (its field of view kept: the corners of the camera's view may go unlit),
-  so that the stripes cross the camera's lines obliquely everywhere (the sphere).
+  so that the stripes cross the camera's lines obliquely everywhere (the sphere);
+* projector offset: the projector (200 mm above the camera) moved 0-100 mm sideways, still
+  aimed at the working point (its field of view kept), so that depth moves the carriers (the
+  sphere).
 
 For every point and pattern: completeness (lit pixels with a point), outliers (valid points
 farther from the truth than one stripe of the thesis's 4-bit pattern, or off any surface: one
@@ -117,15 +120,17 @@ def _precorrected(mismatch: float, spec: PatternSpec) -> PatternSpec:
     return spec.with_(gamma=1.0 if mismatch == BASE_GAMMA else BASE_GAMMA - mismatch)
 
 
-def _rolled(deg: float, rig: simulate.Rig) -> simulate.Rig:
-    """`rig` (a `simulate.virtual_rig`) with its projector turned `deg` degrees about its own
-    axis, its field of view kept."""
-    if deg == 0:
-        return rig
-    projector = rig.calibration.projector
-    fov = float(np.degrees(2 * np.arctan(projector.size[0] / 2 / rig.projector.K[0, 0])))
-    return simulate.virtual_rig(camera_size=rig.calibration.camera.size, projector_size=projector.size,
-                                projector_fov_deg=fov, projector_roll_deg=deg)
+def _moved(argument: str) -> Callable[[float, simulate.Rig], simulate.Rig]:
+    """A factor's rig: `rig` (a `simulate.virtual_rig`) with the `virtual_rig` `argument` at
+    the level, its projector's field of view kept."""
+    def rig_at(level: float, rig: simulate.Rig) -> simulate.Rig:
+        if level == 0:
+            return rig
+        projector = rig.calibration.projector
+        fov = float(np.degrees(2 * np.arctan(projector.size[0] / 2 / rig.projector.K[0, 0])))
+        return simulate.virtual_rig(camera_size=rig.calibration.camera.size, projector_size=projector.size,
+                                    projector_fov_deg=fov, **{argument: level})
+    return rig_at
 
 
 def _tilt(axis: str) -> Callable[[float, simulate.Conditions], Scene]:
@@ -148,7 +153,9 @@ FACTORS = (
     Factor("slope x", "tilt about x (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("x")),
     Factor("slope y", "tilt about y (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("y")),
     Factor("projector roll", "turn about its axis (deg)", (0, 1, 2, 3, 5, 10), (0, 3, 10),
-           lambda v, c: _sphere(c), rig=_rolled),
+           lambda v, c: _sphere(c), rig=_moved("projector_roll_deg")),
+    Factor("projector offset", "sideways, 200 mm above (mm)", (0, 25, 50, 65, 80, 100), (0, 50, 100),
+           lambda v, c: _sphere(c), rig=_moved("projector_offset_mm")),
 )
 
 

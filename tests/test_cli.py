@@ -175,6 +175,10 @@ def test_a_pattern_made_for_a_calibration_fits_its_rig(plane: tuple[Path, str], 
     phase = ok("pattern", "composite", "--calibration", folder / "rig.json", "--phase", "-o", "phase.png", cwd=tmp_path)
     assert phase.stderr.count("warning:") == 1 and "spans 2.8 camera px per period" in phase.stderr
     assert PatternSpec.load(tmp_path / "phase.json").orientation == "rows"
+    simulate.virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR,
+                         projector_offset_mm=80.0).calibration.save(tmp_path / "offset-rig.json")
+    aside = ok("pattern", "composite", "--calibration", "offset-rig.json", "-o", "aside.png", cwd=tmp_path)
+    assert "sits 22 degrees off straight above or below the camera" in aside.stderr  # atan(80 / 200)
     usage = sliscan("pattern", "composite", "-o", "none.png", cwd=tmp_path)
     assert usage.returncode == 2 and "--projector WxH, or --calibration" in usage.stderr
     assert not (tmp_path / "none.png").exists()

@@ -7,7 +7,8 @@ from sliscan import InputError, PatternSpec, Scanner, ScanResult, patterns, simu
 from sliscan.types import Calibration, Device
 from sliscan.evaluate import accuracy, oracle_points, stripe_depth, true_stripes
 from sliscan.patterns import stripe_center
-from sliscan.pipeline import baseline_direction, carrier_period_px, device_centre, measurable, stripe_tilt_deg
+from sliscan.pipeline import (baseline_angle_deg, baseline_direction, carrier_period_px, device_centre, measurable,
+                              stripe_tilt_deg)
 from sliscan.reconstruct import MeasurableTest, Triangulator
 from sliscan.sequences import decode_frames, render_frames
 
@@ -218,6 +219,18 @@ def test_stripe_tilt_is_the_projector_roll_and_zero_on_the_thesis_rig():
         rolled = simulate.virtual_rig(camera_size=(320, 240), projector_size=(256, 192), baseline_axis=axis,
                                       projector_roll_deg=-3.0)
         assert 3.0 <= stripe_tilt_deg(rolled.calibration, orientation) < 3.3
+
+
+@pytest.mark.parametrize("axis, orientation", [("vertical", "rows"), ("horizontal", "columns")])
+def test_baseline_angle_is_the_projectors_offset_across_the_baseline(axis, orientation):
+    """The virtual rig's projector lies beside the camera's centre plane (its epipole at
+    infinity), so every epipolar line runs at atan(offset / baseline) to the phase direction:
+    0 straight above (below, beside), 14.04 degrees for 50 mm across a 200 mm baseline
+    (1e-9: float64)."""
+    for offset, expected in ((0.0, 0.0), (50.0, np.degrees(np.arctan(50 / 200))), (-30.0, np.degrees(np.arctan(30 / 200)))):
+        rig = simulate.virtual_rig(camera_size=(320, 240), projector_size=(256, 192), baseline_axis=axis,
+                                   projector_offset_mm=offset)
+        assert baseline_angle_deg(rig.calibration, orientation) == pytest.approx(expected, abs=1e-9)
 
 
 def test_carrier_period_is_the_focal_ratio_times_the_projected_period():

@@ -120,6 +120,15 @@ def test_a_rolled_projector_turns_its_rows_by_the_roll(roll):
     assert np.degrees(np.arctan2(ya - yb, xb - xa)) == pytest.approx(roll, abs=0.01)
 
 
+def test_a_projector_moved_across_the_baseline_still_aims_at_the_working_point():
+    """`projector_offset_mm` moves the projector's centre sideways (a vertical baseline) and
+    keeps the working point in the middle of its image (1e-6 px, as the level rig)."""
+    moved = virtual_rig(camera_size=CAMERA, projector_size=PROJECTOR, projector_offset_mm=60.0)
+    np.testing.assert_allclose(moved.projector.centre, [60, -200, 0], atol=1e-9)
+    np.testing.assert_allclose(moved.calibration.projector.project(np.array([0.0, 0.0, 800.0])),
+                               (np.array(PROJECTOR) - 1) / 2, atol=1e-6)
+
+
 def test_rig_from_any_scaled_calibration(rig):
     # A DLT calibration has arbitrary scale and sign; the decomposition must not care.
     cal = rig.calibration

@@ -45,8 +45,9 @@ from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
 from sliscan.formats.npz import write_npz_arrays
-from sliscan.pipeline import (DECISIONS, MAX_STRIPE_TILT_DEG, METHODS, MIN_CARRIER_PERIOD_PX, ScanChoices, Scanner,
-                              ScanStages, baseline_direction, carrier_period_px, stripe_tilt_deg)
+from sliscan.pipeline import (DECISIONS, MAX_BASELINE_ANGLE_DEG, MAX_STRIPE_TILT_DEG, METHODS, MIN_CARRIER_PERIOD_PX,
+                              ScanChoices, Scanner, ScanStages, baseline_angle_deg, baseline_direction,
+                              carrier_period_px, stripe_tilt_deg)
 from sliscan.report import require_report
 from sliscan.targets import Board, CircleTarget
 from sliscan.types import MULTI_FRAME_KINDS, SEQUENCE_ORIENTATIONS, Calibration, PatternSpec, ScanResult
@@ -1036,8 +1037,7 @@ def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationAr
 def _warn_rig(spec: PatternSpec, pattern_path: Path, calib: Calibration, source: object) -> None:
     """Warnings on stderr where the rig will not scan a single-shot pattern well: its camera
     does not resolve the finest carrier (`carrier_period_px`), the pattern codes the projector
-    lines that run along the baseline (they do not move with depth), or its coded lines cross
-    the camera's obliquely (`_warn_stripe_tilt`)."""
+    lines that run along the baseline (they do not move with depth), or `_warn_geometry`."""
     if spec.kind in MULTI_FRAME_KINDS:
         return
     period = carrier_period_px(spec, calib)
@@ -1052,19 +1052,29 @@ def _warn_rig(spec: PatternSpec, pattern_path: Path, calib: Calibration, source:
         click.echo(f"warning: {pattern_path}: the pattern codes the projector's {spec.orientation}, but with the "
                    f"camera {beside} the projector ({source}) it is the projector's {across} that change with "
                    f"depth along a camera ray: make the pattern with --orientation {across}", err=True)
-    else:
-        _warn_stripe_tilt(calib, spec.orientation, source)
+        return
+    _warn_geometry(calib, spec.orientation, source)
 
 
-def _warn_stripe_tilt(calib: Calibration, orientation: str, source: object) -> None:
-    """A warning on stderr where the rig's coded lines cross the camera's lines at more than
-    `MAX_STRIPE_TILT_DEG` (`stripe_tilt_deg`): single-shot patterns lose accuracy there."""
+def _warn_geometry(calib: Calibration, orientation: str, source: object) -> None:
+    """Warnings on stderr where the rig's baseline runs off the coded direction by more than
+    `MAX_BASELINE_ANGLE_DEG` (`baseline_angle_deg`: depth moves the carriers) or its coded
+    lines cross the camera's by more than `MAX_STRIPE_TILT_DEG` (`stripe_tilt_deg`): single-shot
+    patterns lose points or accuracy there."""
+    angle = baseline_angle_deg(calib, orientation)
+    if angle > MAX_BASELINE_ANGLE_DEG:
+        straight = "above or below" if orientation == "rows" else "beside"
+        click.echo(f"warning: {source}: the projector sits {angle:.0f} degrees off straight {straight} the camera, "
+                   f"so depth moves the carriers: scans of surfaces whose depth varies lose points beyond "
+                   f"{MAX_BASELINE_ANGLE_DEG:g} degrees (the virtual rig's sphere 3.6 points less complete at 18; the "
+                   f"phase channel's carriers are not found from about 14): move the projector straight {straight} "
+                   "the camera", err=True)
     tilt = stripe_tilt_deg(calib, orientation)
     if tilt > MAX_STRIPE_TILT_DEG:
         click.echo(f"warning: {source}: the projector's {orientation} cross the camera's {orientation} at up to "
-                   f"{tilt:.1f} degrees; "
-                   f"single-shot scans lose accuracy beyond {MAX_STRIPE_TILT_DEG:g} (median error about 2x at 5 degrees, "
-                   "3x at 10 on the virtual rig): turn the projector or the camera about its axis", err=True)
+                   f"{tilt:.1f} degrees; single-shot scans lose accuracy beyond {MAX_STRIPE_TILT_DEG:g} (median error "
+                   "about 2x at 5 degrees, 3x at 10 on the virtual rig): turn the projector or the camera about its "
+                   "axis", err=True)
 
 
 @contextlib.contextmanager
@@ -1328,7 +1338,7 @@ def calibrate(g_file: Any, camera: tuple[int, int] | None, projector: tuple[int,
             written.append(str(path))
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} points; reprojection "
                f"{_residual_summary(calib)}")
-    _warn_stripe_tilt(calib, baseline_direction(calib), output)
+    _warn_geometry(calib, baseline_direction(calib), output)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1445,7 +1455,7 @@ def _run_calibrate_target(files: Sequence[Path], spec: PatternSpec, pattern_path
                                title=f"calibrate-target: {method} DLT, {len(rows)} circles")
     click.echo(f"wrote {', '.join(written)}: {method} DLT from {len(rows)} circles (perspective bias "
                f"{calib.extra['perspective_bias_px']:.2g} px corrected); reprojection {_residual_summary(calib)}")
-    _warn_stripe_tilt(calib, baseline_direction(calib), output)
+    _warn_geometry(calib, baseline_direction(calib), output)
 
 
 def _board_table(calib: Calibration, poses: Sequence[Path]) -> Table:
@@ -1597,7 +1607,7 @@ def _run_calibrate_board(pose_files: dict[Path, list[Path]], spec: PatternSpec, 
         click.echo(f"note: the camera's principal point is uncertain by more than {_PRINCIPAL_POINT_ADVICE_PX:g} px, "
                    "which turns the whole calibration's frame by that over the focal length: take more poses "
                    "with the board filling most of the view (out to the image corners)", err=True)
-    _warn_stripe_tilt(calib, baseline_direction(calib), output)
+    _warn_geometry(calib, baseline_direction(calib), output)
 
 
 # --------------------------------------------------------------------------------------------

@@ -139,18 +139,49 @@ MAX_STRIPE_TILT_DEG = 2.0
 #: 1296x972, 93 %).
 MIN_CARRIER_PERIOD_PX = 3.5
 
+#: A projector this far (degrees) off the camera's column through it (row, for columns: the
+#: angle of the camera's epipolar lines to its phase direction, `baseline_angle_deg`) moves the
+#: carriers with depth: on the virtual rig's sphere (1296x972, seeds 0 and 1, the projector
+#: 200 mm above and moved sideways, its field of view kept; docs/accuracy.md, "Projector
+#: offset") sliscan's pattern is 96.2 % complete level, 95.0 / 94.3 / 92.6 / 90.0 / 88.8 % at
+#: 7 / 14 / 18 / 22 / 27 degrees; the phase pattern 91.0 -> 89.4 % at 7 degrees, and refused
+#: (carriers not found) on one seed of two at 14, on both from 18.
+MAX_BASELINE_ANGLE_DEG = 10.0
+
+
+def _frame_lattice(calibration: Calibration) -> NDArray[np.float64]:
+    """``(3, 25)`` homogeneous camera pixels of a 5 x 5 lattice spanning the camera's frame."""
+    w, h = calibration.camera.size
+    u, v = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    return np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+
+
+def baseline_angle_deg(calibration: Calibration, orientation: str = "rows") -> float:
+    """The largest angle, in degrees, between the camera's epipolar lines (the lines depth
+    moves a point's image along) and its phase direction (camera ``y`` for ``"rows"``, ``x``
+    for ``"columns"``), over a 5 x 5 lattice spanning the camera's frame.  Zero on the thesis's
+    rig (the projector straight above the camera); ``atan(offset / baseline)`` for a projector
+    moved sideways.  Beyond `MAX_BASELINE_ANGLE_DEG` depth moves the carriers too.
+
+    >>> from sliscan import simulate
+    >>> rig = simulate.virtual_rig(camera_size=(640, 480), projector_size=(1024, 768), projector_offset_mm=50.0)
+    >>> round(baseline_angle_deg(rig.calibration), 2)  # atan(50 / 200)
+    14.04
+    """
+    epipole = calibration.camera.matrix @ np.append(device_centre(calibration.projector.matrix), 1.0)
+    pixels = _frame_lattice(calibration)
+    away = pixels[:2] * epipole[2] - epipole[:2, None]  # from the epipole to each pixel (it may lie at infinity)
+    phase, carrier = (away[1], away[0]) if orientation == "rows" else (away[0], away[1])
+    return float(np.degrees(np.arctan2(np.abs(carrier), np.abs(phase))).max())
+
 
 def _projector_gradients(calibration: Calibration) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """How the projector's ``(xp, yp)`` change with the camera pixel on distant surfaces (the
     homography of the plane at infinity, ``P_p[:, :3] P_c[:, :3]^-1``: the rig's rotation
-    between the two devices, whatever the scene adds; lenses taken as ideal), at a 5 x 5
-    lattice spanning the camera's frame: ``d[xp or yp] / d[x]`` and ``d[xp or yp] / d[y]``,
-    each ``(2, 25)``."""
-    cam, proj = calibration.camera, calibration.projector
-    w, h = cam.size
-    u, v = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
-    to_projector = proj.matrix[:, :3] @ np.linalg.inv(cam.matrix[:, :3])  # camera pixel -> projector pixel
-    q = to_projector @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    between the two devices, whatever the scene adds; lenses taken as ideal), at the
+    `_frame_lattice`: ``d[xp or yp] / d[x]`` and ``d[xp or yp] / d[y]``, each ``(2, 25)``."""
+    to_projector = calibration.projector.matrix[:, :3] @ np.linalg.inv(calibration.camera.matrix[:, :3])
+    q = to_projector @ _frame_lattice(calibration)
     # quotient rule on (q[0] / q[2], q[1] / q[2]); axis 1 of `to_projector[:, :2]` is d/dx, d/dy
     gradient = (to_projector[:2, :2, None] * q[2] - to_projector[2, None, :2, None] * q[:2, None]) / q[2] ** 2
     return gradient[:, 0], gradient[:, 1]

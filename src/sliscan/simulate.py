@@ -330,6 +330,7 @@ def virtual_rig(
     camera_distortion: ArrayLike | None = None,
     projector_distortion: ArrayLike | None = None,
     projector_roll_deg: float = 0.0,
+    projector_offset_mm: float = 0.0,
 ) -> Rig:
     """The thesis's rig (section 4.2): a projector displaced vertically from the camera.
 
@@ -372,6 +373,11 @@ def virtual_rig(
         its image clockwise as the camera sees it), as a real rig's mounting leaves it: the
         stripes then cross the camera's lines obliquely everywhere.  The default field of view
         still covers the camera's view.
+    projector_offset_mm : float
+        The projector moved this far across the baseline (to the camera's right, +x, for a
+        vertical baseline; down, +y, for a horizontal one), still aimed at the working point: a
+        rig whose baseline is not straight along the camera's columns (rows), so that depth
+        moves the carriers.
 
     Returns
     -------
@@ -397,6 +403,8 @@ def virtual_rig(
         raise InputError(f"margin must lie in [0, 1), got {margin}")
     if not (math.isfinite(projector_roll_deg) and abs(projector_roll_deg) < 45):
         raise InputError(f"projector_roll_deg must lie in (-45, 45), got {projector_roll_deg}")
+    if not math.isfinite(projector_offset_mm):
+        raise InputError(f"projector_offset_mm must be finite, got {projector_offset_mm}")
     (wc, hc), (wp, hp) = camera_size, projector_size
     camera = Pinhole(K=_intrinsics(_focal(wc, camera_fov_deg), wc, hc), R=np.eye(3), t=np.zeros(3), size=(wc, hc),
                      distortion=None if camera_distortion is None else np.asarray(camera_distortion, np.float64))
@@ -405,14 +413,19 @@ def virtual_rig(
     if baseline_axis not in ("vertical", "horizontal"):
         raise InputError(f"baseline_axis must be 'vertical' or 'horizontal', got {baseline_axis!r}")
     sign = -1.0 if projector_above else 1.0
-    offset = np.array([0.0, sign * baseline_mm, 0.0] if baseline_axis == "vertical" else [sign * baseline_mm, 0.0, 0.0])
-    centre = offset
-    z_axis = np.array([-offset[0], -offset[1], distance_mm]) / math.hypot(baseline_mm, distance_mm)
     if baseline_axis == "vertical":
-        x_axis = np.array([1.0, 0.0, 0.0])
+        centre = np.array([projector_offset_mm, sign * baseline_mm, 0.0])
+    else:
+        centre = np.array([sign * baseline_mm, projector_offset_mm, 0.0])
+    z_axis = np.array([0.0, 0.0, distance_mm]) - centre
+    z_axis /= np.linalg.norm(z_axis)
+    if baseline_axis == "vertical":  # the camera's x axis, made square to the projector's axis
+        x_axis = np.array([1.0, 0.0, 0.0]) - z_axis[0] * z_axis
+        x_axis /= np.linalg.norm(x_axis)
         R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis])
     else:
-        y_axis = np.array([0.0, 1.0, 0.0])
+        y_axis = np.array([0.0, 1.0, 0.0]) - z_axis[1] * z_axis
+        y_axis /= np.linalg.norm(y_axis)
         R = np.stack([np.cross(y_axis, z_axis), y_axis, z_axis])
     cos, sin = math.cos(math.radians(projector_roll_deg)), math.sin(math.radians(projector_roll_deg))
     R = np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]]) @ R  # about the projector's own axis
