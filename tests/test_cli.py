@@ -124,7 +124,7 @@ def test_a_rolled_projector_is_simulated_and_its_scan_warns(plane: tuple[Path, s
     """`simulate --projector-roll 5` turns the virtual rig's projector (its rows then cross the
     camera's at 5.1 degrees: `pipeline.stripe_tilt_deg`), and `scan` with that rig says so on
     stderr, once, and still writes the points; the unturned rig of the module's scan said
-    nothing."""
+    nothing; `--projector-offset 80` moves it sideways, which `scan` names too."""
     folder, _ = plane
     ok("simulate", "--pattern", folder / "cp.json", "--scene", "plane", "--camera", CAMERA_ARG, "--supersample", "1",
        "--projector-roll", "5", "--write-rig", "rig.json", "-o", "capture.png", cwd=tmp_path)
@@ -135,6 +135,10 @@ def test_a_rolled_projector_is_simulated_and_its_scan_warns(plane: tuple[Path, s
     assert npz.read_scan_npz(tmp_path / "out.npz").valid.mean() > 0.5
     quiet = sliscan("scan", "capture.png", "--pattern", "cp.json", "--calibration", "rig.json", cwd=folder)
     assert quiet.returncode == 0 and "warning" not in quiet.stderr
+    ok("simulate", "--pattern", folder / "cp.json", "--scene", "plane", "--camera", CAMERA_ARG, "--supersample", "1",
+       "--projector-offset", "80", "--write-rig", "aside.json", "-o", "aside.png", cwd=tmp_path)
+    aside = ok("scan", "aside.png", "--pattern", folder / "cp.json", "--calibration", "aside.json", cwd=tmp_path)
+    assert "sits 22 degrees off straight above or below the camera" in aside.stderr  # atan(80 / 200)
 
 
 def test_a_pattern_coding_the_lines_along_the_baseline_is_told_which_to_code(plane: tuple[Path, str],

@@ -781,6 +781,9 @@ Examples:
 @click.option("--projector-roll", type=click.FloatRange(min=-44, max=44), default=0.0, show_default=True,
               help="The virtual rig's projector turned about its own axis, degrees (clockwise as the camera sees "
                    "it), as a real mounting leaves it.")
+@click.option("--projector-offset", type=float, default=0.0, show_default=True,
+              help="The virtual rig's projector moved sideways (to the camera's right), mm, still aimed at the "
+                   "working point: a diagonal baseline.")
 @click.option("--write-rig", type=OUTPUT_FILE, help="Save the calibration used (JSON).")
 @click.option("-o", "--output", type=OUTPUT_FILE, required=True,
               help="Capture image (8-bit PNG); for a multi-frame pattern OUT.png means OUT_00.png, OUT_01.png, "
@@ -811,7 +814,7 @@ Examples:
 @_overwrite_option
 def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camera_matrix: Path | None,
                  projector_matrix: Path | None, camera: tuple[int, int] | None, projector_roll: float,
-                 write_rig: Path | None, output: Path, truth: Path | None, projector_view: Path | None,
+                 projector_offset: float, write_rig: Path | None, output: Path, truth: Path | None, projector_view: Path | None,
                  camera_view: Path | None,
                  motion_frames: int | None, velocity: tuple[float, ...], spin: float, overwrite: bool,
                  **physics: Any) -> None:
@@ -827,8 +830,10 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
     """
     if calibration is not None and camera is not None:
         raise click.UsageError("--camera sets the virtual rig's size; a calibration JSON has its own")
-    if projector_roll and (calibration is not None or camera_matrix is not None or projector_matrix is not None):
-        raise click.UsageError("--projector-roll turns the virtual rig's projector; a calibration has its own")
+    if (projector_roll or projector_offset) and (calibration is not None or camera_matrix is not None
+                                                 or projector_matrix is not None):
+        raise click.UsageError("--projector-roll and --projector-offset move the virtual rig's projector; a "
+                               "calibration has its own")
     mat5_prefix = None if scene in SCENES else Path(scene)
     spec = PatternSpec.load(pattern_path)
     multi = spec.kind in MULTI_FRAME_KINDS
@@ -852,7 +857,7 @@ def simulate_cmd(pattern_path: Path, scene: str, calibration: Path | None, camer
                               projector_size=spec.projector_size)
     if calib is None:
         rig = simulate.virtual_rig(camera_size=camera or THESIS_CAMERA, projector_size=spec.projector_size,
-                                   projector_roll_deg=projector_roll)
+                                   projector_roll_deg=projector_roll, projector_offset_mm=projector_offset)
     else:
         source = _calibration_source(calibration, camera_matrix, projector_matrix)
         _check_projector(spec, pattern_path, calib, source)
