@@ -175,16 +175,18 @@ def baseline_angle_deg(calibration: Calibration, orientation: str = "rows") -> f
     return float(np.degrees(np.arctan2(np.abs(carrier), np.abs(phase))).max())
 
 
-def _projector_gradients(calibration: Calibration) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _projector_gradients(calibration: Calibration,
+                         orientation: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """How the projector's ``(xp, yp)`` change with the camera pixel on distant surfaces (the
     homography of the plane at infinity, ``P_p[:, :3] P_c[:, :3]^-1``: the rig's rotation
     between the two devices, whatever the scene adds; lenses taken as ideal), at the
-    `_frame_lattice`: ``d[xp or yp] / d[x]`` and ``d[xp or yp] / d[y]``, each ``(2, 25)``."""
+    `_frame_lattice`: along the camera's carrier direction (``x`` for `orientation` ``"rows"``,
+    ``y`` for ``"columns"``) and along its phase direction, each ``(2, 25)``."""
     to_projector = calibration.projector.matrix[:, :3] @ np.linalg.inv(calibration.camera.matrix[:, :3])
     q = to_projector @ _frame_lattice(calibration)
     # quotient rule on (q[0] / q[2], q[1] / q[2]); axis 1 of `to_projector[:, :2]` is d/dx, d/dy
     gradient = (to_projector[:2, :2, None] * q[2] - to_projector[2, None, :2, None] * q[:2, None]) / q[2] ** 2
-    return gradient[:, 0], gradient[:, 1]
+    return (gradient[:, 0], gradient[:, 1]) if orientation == "rows" else (gradient[:, 1], gradient[:, 0])
 
 
 def stripe_tilt_deg(calibration: Calibration, orientation: str = "rows") -> float:
@@ -200,9 +202,8 @@ def stripe_tilt_deg(calibration: Calibration, orientation: str = "rows") -> floa
     >>> round(stripe_tilt_deg(rig.calibration), 1)  # 4 at the centre, a little more at the corners
     4.1
     """
-    along_x, along_y = _projector_gradients(calibration)
+    along, across = _projector_gradients(calibration, orientation)
     coded = 1 if orientation == "rows" else 0
-    along, across = (along_x, along_y) if orientation == "rows" else (along_y, along_x)
     return float(np.degrees(np.arctan2(np.abs(along[coded]), np.abs(across[coded]))).max())
 
 
@@ -217,11 +218,10 @@ def carrier_period_px(spec: PatternSpec, calibration: Calibration) -> float:
     >>> round(carrier_period_px(patterns.default_spec((1024, 768)), rig.calibration), 1)  # 128 cycles
     4.9
     """
-    along_x, along_y = _projector_gradients(calibration)
+    along, _ = _projector_gradients(calibration, spec.orientation)
     other = 0 if spec.orientation == "rows" else 1  # the projector coordinate the carriers run along
-    along = along_x[other] if spec.orientation == "rows" else along_y[other]
     finest = max(spec.all_carriers) / spec.orthogonal_lines  # cycles per projector pixel
-    return float(1.0 / (finest * np.abs(along).max()))
+    return float(1.0 / (finest * np.abs(along[other]).max()))
 
 
 #: `Scanner` methods (`sliscan scan --method`): the demodulators of `sliscan.demodulate` and the

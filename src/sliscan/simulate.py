@@ -413,20 +413,16 @@ def virtual_rig(
     if baseline_axis not in ("vertical", "horizontal"):
         raise InputError(f"baseline_axis must be 'vertical' or 'horizontal', got {baseline_axis!r}")
     sign = -1.0 if projector_above else 1.0
-    if baseline_axis == "vertical":
-        centre = np.array([projector_offset_mm, sign * baseline_mm, 0.0])
-    else:
-        centre = np.array([sign * baseline_mm, projector_offset_mm, 0.0])
+    vertical = baseline_axis == "vertical"
+    centre = np.array([projector_offset_mm, sign * baseline_mm, 0.0] if vertical
+                      else [sign * baseline_mm, projector_offset_mm, 0.0])
     z_axis = np.array([0.0, 0.0, distance_mm]) - centre
     z_axis /= np.linalg.norm(z_axis)
-    if baseline_axis == "vertical":  # the camera's x axis, made square to the projector's axis
-        x_axis = np.array([1.0, 0.0, 0.0]) - z_axis[0] * z_axis
-        x_axis /= np.linalg.norm(x_axis)
-        R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis])
-    else:
-        y_axis = np.array([0.0, 1.0, 0.0]) - z_axis[1] * z_axis
-        y_axis /= np.linalg.norm(y_axis)
-        R = np.stack([np.cross(y_axis, z_axis), y_axis, z_axis])
+    kept = 0 if vertical else 1  # the camera axis across the baseline, made square to the projector's axis
+    across = np.eye(3)[kept] - z_axis[kept] * z_axis
+    across /= np.linalg.norm(across)
+    R = (np.stack([across, np.cross(z_axis, across), z_axis]) if vertical
+         else np.stack([np.cross(across, z_axis), across, z_axis]))
     cos, sin = math.cos(math.radians(projector_roll_deg)), math.sin(math.radians(projector_roll_deg))
     R = np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]]) @ R  # about the projector's own axis
     if projector_fov_deg is None:
