@@ -1,6 +1,7 @@
 """Carrier detection and demodulation (thesis 3.3-3.4)."""
 
 import functools
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -128,15 +129,19 @@ def test_ramped_fit_leaves_out_windows_with_an_edge_the_one_period_windows_avoid
     assert np.array_equal(np.isfinite(out.ramped[0]), np.broadcast_to(expected, (20, 640)))
 
 
-def test_lines_whose_carriers_chirp_are_fitted_along_their_scale():
+@pytest.mark.parametrize("mean", [0.0, 0.03, -0.03])
+def test_lines_whose_carriers_chirp_are_fitted_along_their_scale(mean):
     # seven carriers whose local frequency runs from +5 % to -5 % of the line's along it (a
     # surface turned steeply about the phase direction, seen by a pitched projector): fitted at
     # the line's frequencies, each envelope is 9-16 % off on average; measured and followed
     # (`along_scale`), 0.7-1.8 % (what is left: the scale smoothed over two windows, the cubic
-    # resampling)
+    # resampling).  The same with the whole line 3 % off its scale as well (a projector beside
+    # the camera: depth moves the carriers, and a line's scale is its lit surfaces' mean):
+    # 10-27 % fitted at the line's frequencies; 1.0-2.8 % followed (15-26 % until the
+    # thirty-ninth session: the resampling kept each line's length, so its mean error stayed)
     width, window = 960, 34
     x = np.arange(width)
-    warp = x + np.cumsum(0.05 - 0.1 * x / width)  # the coordinate in which the carriers keep their frequency
+    warp = x + np.cumsum(mean + 0.05 - 0.1 * x / width)  # the coordinate in which the carriers keep their frequency
     freqs = np.arange(1, 8) / window
     amplitudes = np.array([0.1, 0.05, 0.08, 0.04, 0.08, 0.06, 0.05])
     phases = np.random.default_rng(5).uniform(0, 2 * np.pi, 7)
@@ -146,7 +151,7 @@ def test_lines_whose_carriers_chirp_are_fitted_along_their_scale():
     errors = [np.mean(np.abs(demodulate_window(image, carriers, albedo=None, follow_scale=follow).amplitude
                              - amplitudes[:, None, None])[:, :, 50:-50], axis=(1, 2)) / amplitudes
               for follow in (False, True)]
-    assert errors[0].min() > 0.08 and errors[1].max() < 0.03
+    assert errors[0].min() > 0.08 and errors[1].max() < (0.03 if mean == 0 else 0.04)
 
 
 def test_adaptive_window_keeps_a_step_out():
@@ -238,6 +243,43 @@ def test_detect_carriers_rejects_a_capture_without_them(rng):
     spec = patterns.thesis_spec((1024, 768))
     with pytest.raises(InputError, match="no carriers found near"):
         detect_carriers(rng.uniform(0.4, 0.6, (240, 320)).astype(np.float32), spec)
+
+
+def test_a_projector_beside_the_camera_still_shows_every_carrier(monkeypatch):
+    """A projector 200 mm above and 65 mm beside the camera (18 degrees off a straight rig; the
+    shared data's real rig has 13.6): depth moves the carriers along the lines, and on a sphere
+    the frame's spectrum smears the phase channel's carriers into plateaus.  Until the
+    thirty-ninth session such captures were refused; each tile's spectrum taken at its own
+    scale (`_depth_normalised_contrast`) shows the carriers, and the phase pattern decodes.  A
+    capture without the phase carriers (the stripe pattern's, whose four carriers are the phase
+    pattern's first four) is still refused: each carrier is left out of its tiles' scale search,
+    so noise cannot be lined up on it.  (Through an uncorrected gamma it is not: the projector
+    squares the pattern, and the sums of its carriers, 160, 192 and 224 cycles, are there.)"""
+    from sliscan import demodulate as module
+    from sliscan import evaluate
+    from sliscan.pipeline import Scanner
+
+    straight = simulate.virtual_rig(camera_size=(1296, 972), projector_size=(1024, 768))
+    fov = float(np.degrees(2 * np.arctan(512 / straight.projector.K[0, 0])))
+    rig = simulate.virtual_rig(camera_size=(1296, 972), projector_size=(1024, 768), projector_fov_deg=fov,
+                               projector_offset_mm=65.0)
+    conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=7), ambient=0.1,
+                                     projector_gamma=2.2, projector_blur_px=1.0, camera_blur_px=1.0, seed=7,
+                                     supersample=1)
+    spec = patterns.phase_spec((1024, 768))
+    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+    accuracy = evaluate.accuracy(Scanner(spec, rig.calibration).scan(capture.image), capture.truth, spec,
+                                 rig.calibration)
+    # measured (seed 7): 86.5 % complete, median 0.56 mm, RMS 5.1 mm (robustness benchmark at 65 mm, seeds 0-1:
+    # 84.0 %, 0.77, 5.6; the straight rig 90.9 %, 0.57, 2.9)
+    assert accuracy.completeness > 0.75 and accuracy.median_mm < 1.5 and accuracy.rms_mm < 8
+    stripes = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(patterns.default_spec((1024, 768))),
+                              replace(conditions, projector_gamma=1.0))  # a gamma would put their products there
+    with pytest.raises(InputError, match="carriers near 160, 192, 224 cycles/width not found"):
+        detect_carriers(stripes.image, spec)
+    monkeypatch.setattr(module, "_depth_normalised_contrast", lambda img, proj, scale: np.zeros(proj.size))
+    with pytest.raises(InputError, match="not found"):
+        detect_carriers(capture.image, spec)
 
 
 def test_columns_orientation_is_the_transpose():

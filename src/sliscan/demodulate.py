@@ -217,12 +217,23 @@ def _locate_carriers(img: NDArray[np.float32], proj: NDArray[np.float64]) -> tup
     beside = np.interp(scales[:, None] * (proj[None, :] + offset) * width, np.arange(freqs.size), logp)
     scale = float(scales[np.argmax((at - beside).sum(axis=1))])
 
-    gap = _common_spacing(proj) * scale * width  # in bins
-    refined = np.empty_like(proj)
-    contrast = np.empty_like(proj)
-    bins = np.arange(freqs.size)
-    for n, b in enumerate(proj * scale * width):
-        lo, hi = max(1, int(np.floor(b - 0.3 * gap))), min(freqs.size - 2, int(np.ceil(b + 0.3 * gap)))
+    return _peaks(logp, proj * scale * width, _common_spacing(proj) * scale * width)
+
+
+def _peaks(logp: NDArray[np.float64], predicted: NDArray[np.float64], gap: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The spectral peak nearest each predicted carrier and how far it stands out.
+
+    `logp` is a log power spectrum ``(B,)``, `predicted` the carriers' expected positions in
+    its bins ``(C,)`` and `gap` their common spacing in bins.  Each peak is the maximum within
+    0.3 gap of its prediction, refined by a parabola; its contrast is its power over the
+    median power within half a gap around it (2 bins and more away).  Returns ``(refined
+    positions, contrasts)``, both ``(C,)``.
+    """
+    bins = np.arange(logp.size)
+    refined = np.empty(predicted.size)
+    contrast = np.empty(predicted.size)
+    for n, b in enumerate(predicted):
+        lo, hi = max(1, int(np.floor(b - 0.3 * gap))), min(logp.size - 2, int(np.ceil(b + 0.3 * gap)))
         k = lo + int(np.argmax(logp[lo : hi + 1]))
         a, c, e = logp[k - 1], logp[k], logp[k + 1]
         den = a - 2 * c + e
@@ -230,6 +241,79 @@ def _locate_carriers(img: NDArray[np.float32], proj: NDArray[np.float64]) -> tup
         around = (np.abs(bins - k) <= max(0.5 * gap, 4)) & (np.abs(bins - k) > 2) & (bins > 0)
         contrast[n] = np.exp(c - np.median(logp[around])) if around.any() else 0.0
     return refined, contrast
+
+
+#: Tiles of `_depth_normalised_contrast`: this many bins between carriers (the tile's length
+#: follows), this many lines, at most this many line blocks, and local scales searched within
+#: this log span of the frame's.
+TILE_BINS_PER_SPACING = 8
+TILE_LINES = 8
+TILE_BLOCKS = 128
+TILE_SCALE_SPAN = 0.25
+
+
+def _tile_spectra(img: NDArray[np.float32], length: int) -> NDArray[np.float64]:
+    """Power spectra of tiles `length` px long (half overlapping) and `TILE_LINES` lines tall.
+
+    Each tile's lines have their means removed and a Hann window; their power spectra are
+    averaged.  At most `TILE_BLOCKS` evenly spaced blocks of lines are used.  Returns ``(T,
+    length // 2 + 1)``, one row per tile.
+    """
+    h, w = img.shape
+    starts = np.unique(np.r_[np.arange(0, w - length + 1, length // 2), w - length])
+    lines = min(TILE_LINES, h)
+    first = np.arange(0, h - lines + 1, lines)
+    first = first[np.unique(np.linspace(0, first.size - 1, min(first.size, TILE_BLOCKS)).astype(np.intp))]
+    spectra = []
+    for r0 in first:
+        segs = np.asarray(img[r0 : r0 + lines], np.float64)[:, starts[:, None] + np.arange(length)]
+        segs -= segs.mean(axis=2, keepdims=True)
+        spectra.append((np.abs(np.fft.rfft(segs * np.hanning(length), axis=2)) ** 2).mean(axis=0))
+    return np.concatenate(spectra, axis=0)
+
+
+def _lerp(values: NDArray[np.float64], positions: NDArray[np.float64]) -> NDArray[np.float64]:
+    """`values` ``(T, B)`` linearly interpolated at `positions` ``(T, ...)`` (bins; 0 beyond the last)."""
+    last = values.shape[1] - 1
+    at = np.clip(positions, 0, last)
+    k = np.minimum(at.astype(np.intp), last - 1)
+    frac = at - k
+    rows = np.arange(values.shape[0]).reshape((-1,) + (1,) * (positions.ndim - 1))
+    out = values[rows, k] * (1 - frac) + values[rows, k + 1] * frac
+    return np.where(positions > last, 0.0, out)
+
+
+def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float64], scale: float) -> NDArray[np.float64]:
+    """Each carrier's peak contrast in a spectrum that undoes the local scale of every tile.
+
+    Where the baseline has a component along the carriers, depth changes their local
+    frequency across the frame (by 10-20 % on a sphere 14-27 degrees off a straight rig), and
+    the frame's mean spectrum smears the finest carriers into plateaus.  Here each short tile
+    (`_tile_spectra`, `TILE_BINS_PER_SPACING` bins between carriers) gets its own scale, the
+    one that puts the *other* carriers on peaks (log power on them against half a spacing
+    beside them, as `_locate_carriers` scores the frame), its spectrum is resampled to the
+    frame's `scale` (camera cycles per projector cycle per pixel), and the carrier's peak
+    contrast is measured (`_peaks`) in the mean of the resampled spectra.  Leaving the carrier
+    out of its own tiles' scales keeps noise from lining up on it: a carrier faded by blur or
+    drowned in noise stays as low as in the frame's spectrum.  Returns ``(C,)`` contrasts.
+    """
+    spacing = _common_spacing(proj)
+    length = int(min(img.shape[1], round(TILE_BINS_PER_SPACING / (spacing * scale))))
+    power = _tile_spectra(img, length)
+    logp = np.log(power + power.max() * 1e-12 + 1e-30)
+    trial = scale * np.exp(np.arange(-TILE_SCALE_SPAN, TILE_SCALE_SPAN, 0.25 / (length * proj.max() * scale)))
+    on = _lerp(logp, np.broadcast_to(trial[:, None] * proj * length, (logp.shape[0], trial.size, proj.size)))
+    beside = _lerp(logp, np.broadcast_to(trial[:, None] * (proj + 0.5 * spacing) * length,
+                                         (logp.shape[0], trial.size, proj.size)))
+    score = on - beside  # (tiles, trials, carriers)
+    bins = np.arange(power.shape[1], dtype=np.float64)
+    contrast = np.empty(proj.size)
+    for n in range(proj.size):
+        tile_scale = trial[np.argmax(score.sum(axis=2) - score[:, :, n], axis=1)]
+        resampled = _lerp(power, bins * (tile_scale / scale)[:, None]).mean(axis=0)
+        resampled_log = np.log(resampled + resampled.max() * 1e-12 + 1e-30)
+        contrast[n] = _peaks(resampled_log, proj[n : n + 1] * scale * length, spacing * scale * length)[1][0]
+    return contrast
 
 
 def _carriers_missing(img: NDArray[np.float32], spec: PatternSpec, found: NDArray[np.bool_]) -> str:
@@ -261,7 +345,11 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
     differently from the top of the frame to the bottom that the frame's mean spectrum smears
     the finest carriers into plateaus; then each quarter of the lines is searched alone, and
     the quarter whose weakest carrier stands highest gives the scale (`_line_scales` then
-    follows the magnification line by line).
+    follows the magnification line by line).  A baseline with a component along the carriers
+    (a projector beside as well as above the camera) smears the finest carriers too, by depth;
+    then the carriers not found are looked for in a spectrum that undoes each tile's scale
+    (`_depth_normalised_contrast`), and the scale is the one of the carriers found on the
+    frame's spectrum.
 
     Raises
     ------
@@ -278,9 +366,11 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
             bands = [_locate_carriers(band, proj) for band in np.array_split(img, 4) if band.shape[0] >= 8]
             refined, contrast = max([(refined, contrast)] + bands, key=lambda found: float(found[1].min()))
     found = contrast >= MIN_PEAK_CONTRAST
+    scale = float(np.sum((refined * proj)[found]) / np.sum(proj[found] ** 2) / width) if found.any() else 0.0
+    if found.any() and not found.all():
+        found |= _depth_normalised_contrast(img, proj, scale) >= MIN_PEAK_CONTRAST
     if not found.all():
         raise InputError(_carriers_missing(img, spec, found))
-    scale = float(np.sum(refined * proj) / np.sum(proj * proj) / width)
     window = int(round(1.0 / (_common_spacing(proj) * scale)))
     if window > width:
         raise InputError(f"capture is {width} px along the carriers, shorter than one carrier spacing ({window} px)")
@@ -963,23 +1053,28 @@ def along_scale(image: NDArray[np.floating], carriers: Carriers, error: NDArray[
 
     `error` ``(H, W)``: the carriers' local scale error ``e(x)`` (`scale_map`); pixel ``x`` of
     a line sits at ``u(x) = x + sum e`` of the warped coordinate, in which the carriers have
-    the line's frequencies.  Each line is resampled (cubic) at ``u = u(0) + k
-    du`` (``du`` the line's mean, about 1), fitted, and every output taken back at the sample
-    nearest to each pixel (an interpolation would mix the two sides of a depth edge).
-    Measured (docs/accuracy.md, "Sub-stripe depth from one frame"): on a plane turned 60 degrees about the
-    vertical (960x720, noise-free) the stripe pattern 91 -> 97 % of the stripes right."""
+    the line's frequencies.  Each line is resampled (cubic) at ``u = u(0) + k``, one sample per
+    unit of ``u`` (lines whose ``u`` spans less than the longest are padded with their last
+    pixel), fitted, and every output taken back at the sample nearest to each pixel (an
+    interpolation would mix the two sides of a depth edge).  Measured (docs/accuracy.md,
+    "Sub-stripe depth from one frame"): on a plane turned 60 degrees about the vertical
+    (960x720, noise-free) the stripe pattern 91 -> 97 % of the stripes right.  Until the
+    thirty-ninth session the samples kept the line's length (a step of the line's mean ``1 +
+    e``), so a line's mean error stayed in it: 2-3 % where a projector beside the camera lets
+    depth move the carriers (docs/accuracy.md, "Projector offset")."""
     h, w = error.shape
     warp = np.arange(w)[None, :] + np.cumsum(error, axis=1)  # u(x), (H, W)
-    step = (warp[:, -1:] - warp[:, :1]) / (w - 1)
-    samples = warp[:, :1] + np.arange(w)[None, :] * step  # where each resampled pixel lies in u
+    span = warp[:, -1] - warp[:, 0]
+    length = max(w, int(np.ceil(span.max())) + 1)
+    samples = warp[:, :1] + np.arange(length)[None, :]  # where each resampled pixel lies in u
     pixels = np.arange(w, dtype=np.float64)
     columns = np.stack([np.interp(samples[r], warp[r], pixels) for r in range(h)]).astype(np.float32)
-    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, length))
     resampled = cv2.remap(np.ascontiguousarray(image, dtype=np.float32), columns, np.ascontiguousarray(rows),
                           cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     fitted = demodulate_window(resampled, carriers, follow_scale=False, **options)
-    nearest = np.clip(np.rint((warp - warp[:, :1]) / step), 0, w - 1).astype(np.intp)  # each pixel's sample
-    return fitted.mapped(lambda a: np.ascontiguousarray(np.take_along_axis(a, np.broadcast_to(nearest, a.shape),
+    nearest = np.clip(np.rint(warp - warp[:, :1]), 0, length - 1).astype(np.intp)  # each pixel's sample
+    return fitted.mapped(lambda a: np.ascontiguousarray(np.take_along_axis(a, np.broadcast_to(nearest, a.shape[:-1] + (w,)),
                                                                             axis=-1)))
 
 
