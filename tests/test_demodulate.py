@@ -137,8 +137,11 @@ def test_lines_whose_carriers_chirp_are_fitted_along_their_scale(mean):
     # (`along_scale`), 0.7-1.8 % (what is left: the scale smoothed over two windows, the cubic
     # resampling).  The same with the whole line 3 % off its scale as well (a projector beside
     # the camera: depth moves the carriers, and a line's scale is its lit surfaces' mean):
-    # 10-27 % fitted at the line's frequencies; 1.0-2.8 % followed (15-26 % until the
-    # thirty-ninth session: the resampling kept each line's length, so its mean error stayed)
+    # 10-27 % fitted at the line's frequencies; 0.9-3.0 % followed (15-26 % until the
+    # thirty-ninth session, when each line was fitted at its own frequencies after the
+    # resampling, so its mean error stayed).  3 % keeps the window whole (34 / 1.03 = 33.0
+    # samples); 2 % would leave 0.3 of a sample, and 2.5-7 % of leakage, as on any line whose
+    # carriers' spacing is no whole number of pixels
     width, window = 960, 34
     x = np.arange(width)
     warp = x + np.cumsum(mean + 0.05 - 0.1 * x / width)  # the coordinate in which the carriers keep their frequency

@@ -1071,9 +1071,9 @@ def _warn_geometry(calib: Calibration, orientation: str, source: object) -> None
         straight = "above or below" if orientation == "rows" else "beside"
         click.echo(f"warning: {source}: the projector sits {angle:.0f} degrees off straight {straight} the camera, "
                    f"so depth moves the carriers: scans of surfaces whose depth varies lose points beyond "
-                   f"{MAX_BASELINE_ANGLE_DEG:g} degrees (the virtual rig's sphere 3.6 points less complete at 18; the "
-                   f"phase channel's carriers are not found from about 14): move the projector straight {straight} "
-                   "the camera", err=True)
+                   f"{MAX_BASELINE_ANGLE_DEG:g} degrees (the virtual rig's sphere 3 points less complete at 18 with the "
+                   f"stripe pattern, 6 with the phase pattern): move the projector straight {straight} the camera",
+                   err=True)
     tilt = stripe_tilt_deg(calib, orientation)
     if tilt > MAX_STRIPE_TILT_DEG:
         click.echo(f"warning: {source}: the projector's {orientation} cross the camera's {orientation} at up to "

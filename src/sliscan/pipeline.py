@@ -128,8 +128,8 @@ def baseline_direction(calibration: Calibration) -> str:
 #: Coded lines crossing the camera's carrier direction at more than this angle (degrees,
 #: `stripe_tilt_deg`) cost single-shot accuracy: on the virtual rig (1296x972, the sphere, the
 #: projector turned about its axis; docs/accuracy.md, "Projector roll") the median error of
-#: sliscan's pattern grows 1.1x at 2 degrees, 1.4x at 3, 1.9x at 5 and 3.3x at 10 (the phase
-#: pattern's 1.2x, 1.4x, 1.8x, 2.8x).
+#: sliscan's pattern grows 1.1x at 2 degrees, 1.3x at 3, 1.7x at 5 and 3.1x at 10 (the phase
+#: pattern's 1.2x, 1.4x, 1.7x, 2.5x).
 MAX_STRIPE_TILT_DEG = 2.0
 
 #: A carrier finer than this many camera pixels per period (`carrier_period_px`) is not
@@ -143,9 +143,9 @@ MIN_CARRIER_PERIOD_PX = 3.5
 #: angle of the camera's epipolar lines to its phase direction, `baseline_angle_deg`) moves the
 #: carriers with depth: on the virtual rig's sphere (1296x972, seeds 0 and 1, the projector
 #: 200 mm above and moved sideways, its field of view kept; docs/accuracy.md, "Projector
-#: offset") sliscan's pattern is 96.2 % complete level, 95.0 / 94.3 / 92.6 / 90.0 / 88.8 % at
-#: 7 / 14 / 18 / 22 / 27 degrees; the phase pattern 91.0 -> 89.4 % at 7 degrees, and refused
-#: (carriers not found) on one seed of two at 14, on both from 18.
+#: offset") sliscan's pattern is 96.2 % complete level, 95.2 / 94.5 / 93.2 / 91.4 / 89.2 % at
+#: 7 / 14 / 18 / 22 / 27 degrees; the phase pattern 91.0 -> 89.6 / 88.2 / 84.9 / 80.1 / 79.0 %,
+#: its RMS error 3.0 -> 3.8 / 4.1 / 5.4 / 5.5 / 7.4 mm.
 MAX_BASELINE_ANGLE_DEG = 10.0
 
 
