@@ -196,6 +196,11 @@ def _common_spacing(carriers: NDArray[np.float64]) -> float:
 MIN_PEAK_CONTRAST = 4.0
 
 
+def _log_power(power: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Natural log of a power spectrum, floored 120 dB below its peak (no log of zero)."""
+    return np.log(power + power.max() * 1e-12 + 1e-30)
+
+
 def _locate_carriers(img: NDArray[np.float32], proj: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The spectral search of `detect_carriers` along axis 1 of `img`.
 
@@ -204,7 +209,7 @@ def _locate_carriers(img: NDArray[np.float32], proj: NDArray[np.float64]) -> tup
     """
     width = img.shape[1]
     freqs, power = line_spectrum(img)
-    logp = np.log(power + power.max() * 1e-12 + 1e-30)
+    logp = _log_power(power)
     s_hi = 0.45 / proj.max()
     s_lo = 4.0 / (width * proj.min())
     if s_lo >= s_hi:
@@ -260,7 +265,7 @@ def _tile_spectra(img: NDArray[np.float32], length: int) -> NDArray[np.float64]:
     length // 2 + 1)``, one row per tile.
     """
     h, w = img.shape
-    starts = np.unique(np.r_[np.arange(0, w - length + 1, length // 2), w - length])
+    starts = np.unique(np.r_[np.arange(0, w - length + 1, max(1, length // 2)), w - length])
     lines = min(TILE_LINES, h)
     first = np.arange(0, h - lines + 1, lines)
     first = first[np.unique(np.linspace(0, first.size - 1, min(first.size, TILE_BLOCKS)).astype(np.intp))]
@@ -292,7 +297,7 @@ def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float6
     (`_tile_spectra`, `TILE_BINS_PER_SPACING` bins between carriers) gets its own scale, the
     one that puts the *other* carriers on peaks (log power on them against half a spacing
     beside them, as `_locate_carriers` scores the frame), its spectrum is resampled to the
-    frame's `scale` (camera cycles per projector cycle per pixel), and the carrier's peak
+    frame's `scale` (projector pixels per camera pixel, `Carriers.scale`), and the carrier's peak
     contrast is measured (`_peaks`) in the mean of the resampled spectra.  Leaving the carrier
     out of its own tiles' scales keeps noise from lining up on it: a carrier faded by blur or
     drowned in noise stays as low as in the frame's spectrum.  Returns ``(C,)`` contrasts.
@@ -300,7 +305,7 @@ def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float6
     spacing = _common_spacing(proj)
     length = int(min(img.shape[1], round(TILE_BINS_PER_SPACING / (spacing * scale))))
     power = _tile_spectra(img, length)
-    logp = np.log(power + power.max() * 1e-12 + 1e-30)
+    logp = _log_power(power)
     trial = scale * np.exp(np.arange(-TILE_SCALE_SPAN, TILE_SCALE_SPAN, 0.25 / (length * proj.max() * scale)))
     on = _lerp(logp, np.broadcast_to(trial[:, None] * proj * length, (logp.shape[0], trial.size, proj.size)))
     beside = _lerp(logp, np.broadcast_to(trial[:, None] * (proj + 0.5 * spacing) * length,
@@ -311,8 +316,7 @@ def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float6
     for n in range(proj.size):
         tile_scale = trial[np.argmax(score.sum(axis=2) - score[:, :, n], axis=1)]
         resampled = _lerp(power, bins * (tile_scale / scale)[:, None]).mean(axis=0)
-        resampled_log = np.log(resampled + resampled.max() * 1e-12 + 1e-30)
-        contrast[n] = _peaks(resampled_log, proj[n : n + 1] * scale * length, spacing * scale * length)[1][0]
+        contrast[n] = _peaks(_log_power(resampled), proj[n : n + 1] * scale * length, spacing * scale * length)[1][0]
     return contrast
 
 
@@ -1056,9 +1060,9 @@ def along_scale(image: NDArray[np.floating], carriers: Carriers, error: NDArray[
     the line's frequencies.  Each line is resampled (cubic) at ``u = u(0) + k du`` (``du`` the
     line's mean ``1 + e``, so that it keeps its length), fitted at its carriers' frequencies
     per sample (the line's times ``du``), and every output taken back at the sample nearest to
-    each pixel (an interpolation would mix the two sides of a depth edge).  Measured (docs/accuracy.md,
-    "Sub-stripe depth from one frame"): on a plane turned 60 degrees about the vertical
-    (960x720, noise-free) the stripe pattern 91 -> 97 % of the stripes right.  Until the
+    each pixel (an interpolation would mix the two sides of a depth edge).  Measured
+    (docs/accuracy.md, "Sub-stripe depth from one frame"): on a plane turned 60 degrees about
+    the vertical (960x720, noise-free) the stripe pattern 91 -> 97 % of the stripes right.  Until the
     thirty-ninth session the lines were fitted at their own frequencies, so a line's mean error
     stayed in the fit: 2-3 % where a projector beside the camera lets depth move the carriers
     (docs/accuracy.md, "Projector offset").  (Resampling at unit steps of ``u`` instead pads the
