@@ -280,7 +280,7 @@ def test_a_projector_beside_the_camera_still_shows_every_carrier(monkeypatch):
                               replace(conditions, projector_gamma=1.0))  # a gamma would put their products there
     with pytest.raises(InputError, match="carriers near 160, 192, 224 cycles/width not found"):
         detect_carriers(stripes.image, spec)
-    monkeypatch.setattr(module, "_depth_normalised_contrast", lambda img, proj, scale: np.zeros(proj.size))
+    monkeypatch.setattr(module, "_depth_normalised_contrast", lambda img, proj, scale, which: np.zeros(len(which)))
     with pytest.raises(InputError, match="not found"):
         detect_carriers(capture.image, spec)
 

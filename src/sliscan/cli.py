@@ -1039,6 +1039,11 @@ def _scan_calibration(spec: PatternSpec, pattern_path: Path, args: CalibrationAr
     return calib, source
 
 
+#: Where the camera sits from the projector when the projector lines that move with depth are
+#: its rows, or its columns (`baseline_direction`).
+_STRAIGHT_FROM = {"rows": "above or below", "columns": "beside"}
+
+
 def _warn_rig(spec: PatternSpec, pattern_path: Path, calib: Calibration, source: object) -> None:
     """Warnings on stderr where the rig will not scan a single-shot pattern well: its camera
     does not resolve the finest carrier (`carrier_period_px`), the pattern codes the projector
@@ -1053,9 +1058,8 @@ def _warn_rig(spec: PatternSpec, pattern_path: Path, calib: Calibration, source:
                    "bits, no --phase) or more camera pixels across the projected area", err=True)
     across = baseline_direction(calib)
     if spec.orientation != across:
-        beside = "beside" if across == "columns" else "above or below"
         click.echo(f"warning: {pattern_path}: the pattern codes the projector's {spec.orientation}, but with the "
-                   f"camera {beside} the projector ({source}) it is the projector's {across} that change with "
+                   f"camera {_STRAIGHT_FROM[across]} the projector ({source}) it is the projector's {across} that change with "
                    f"depth along a camera ray: make the pattern with --orientation {across}", err=True)
         return
     _warn_geometry(calib, spec.orientation, source)
@@ -1068,7 +1072,7 @@ def _warn_geometry(calib: Calibration, orientation: str, source: object) -> None
     patterns lose points or accuracy there."""
     angle = baseline_angle_deg(calib, orientation)
     if angle > MAX_BASELINE_ANGLE_DEG:
-        straight = "above or below" if orientation == "rows" else "beside"
+        straight = _STRAIGHT_FROM[orientation]
         click.echo(f"warning: {source}: the projector sits {angle:.0f} degrees off straight {straight} the camera, "
                    f"so depth moves the carriers: scans of surfaces whose depth varies lose points beyond "
                    f"{MAX_BASELINE_ANGLE_DEG:g} degrees (the virtual rig's sphere 3 points less complete at 18 with the "
@@ -1078,7 +1082,7 @@ def _warn_geometry(calib: Calibration, orientation: str, source: object) -> None
     if tilt > MAX_STRIPE_TILT_DEG:
         click.echo(f"warning: {source}: the projector's {orientation} cross the camera's {orientation} at up to "
                    f"{tilt:.1f} degrees; single-shot scans lose accuracy beyond {MAX_STRIPE_TILT_DEG:g} (median error "
-                   "about 2x at 5 degrees, 3x at 10 on the virtual rig): turn the projector or the camera about its "
+                   "about 1.7x at 5 degrees, 3x at 10 on the virtual rig): turn the projector or the camera about its "
                    "axis", err=True)
 
 

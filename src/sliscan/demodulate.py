@@ -288,8 +288,10 @@ def _lerp(values: NDArray[np.float64], positions: NDArray[np.float64]) -> NDArra
     return np.where(positions > last, 0.0, out)
 
 
-def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float64], scale: float) -> NDArray[np.float64]:
-    """Each carrier's peak contrast in a spectrum that undoes the local scale of every tile.
+def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float64], scale: float,
+                               which: NDArray[np.intp]) -> NDArray[np.float64]:
+    """The peak contrast of the carriers `which` (indices into `proj`) in a spectrum that
+    undoes the local scale of every tile.
 
     Where the baseline has a component along the carriers, depth changes their local
     frequency across the frame (by 10-20 % on a sphere 14-27 degrees off a straight rig), and
@@ -300,7 +302,8 @@ def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float6
     frame's `scale` (projector pixels per camera pixel, `Carriers.scale`), and the carrier's peak
     contrast is measured (`_peaks`) in the mean of the resampled spectra.  Leaving the carrier
     out of its own tiles' scales keeps noise from lining up on it: a carrier faded by blur or
-    drowned in noise stays as low as in the frame's spectrum.  Returns ``(C,)`` contrasts.
+    drowned in noise stays as low as in the frame's spectrum.  Returns one contrast per index
+    of `which`.
     """
     spacing = _common_spacing(proj)
     length = int(min(img.shape[1], round(TILE_BINS_PER_SPACING / (spacing * scale))))
@@ -311,12 +314,13 @@ def _depth_normalised_contrast(img: NDArray[np.float32], proj: NDArray[np.float6
     beside = _lerp(logp, np.broadcast_to(trial[:, None] * (proj + 0.5 * spacing) * length,
                                          (logp.shape[0], trial.size, proj.size)))
     score = on - beside  # (tiles, trials, carriers)
+    total = score.sum(axis=2)
     bins = np.arange(power.shape[1], dtype=np.float64)
-    contrast = np.empty(proj.size)
-    for n in range(proj.size):
-        tile_scale = trial[np.argmax(score.sum(axis=2) - score[:, :, n], axis=1)]
+    contrast = np.empty(len(which))
+    for k, n in enumerate(which):
+        tile_scale = trial[np.argmax(total - score[:, :, n], axis=1)]
         resampled = _lerp(power, bins * (tile_scale / scale)[:, None]).mean(axis=0)
-        contrast[n] = _peaks(_log_power(resampled), proj[n : n + 1] * scale * length, spacing * scale * length)[1][0]
+        contrast[k] = _peaks(_log_power(resampled), proj[n : n + 1] * scale * length, spacing * scale * length)[1][0]
     return contrast
 
 
@@ -372,7 +376,8 @@ def detect_carriers(image: NDArray[np.floating], spec: PatternSpec) -> Carriers:
     found = contrast >= MIN_PEAK_CONTRAST
     scale = float(np.sum((refined * proj)[found]) / np.sum(proj[found] ** 2) / width) if found.any() else 0.0
     if found.any() and not found.all():
-        found |= _depth_normalised_contrast(img, proj, scale) >= MIN_PEAK_CONTRAST
+        missing = np.flatnonzero(~found)
+        found[missing] = _depth_normalised_contrast(img, proj, scale, missing) >= MIN_PEAK_CONTRAST
     if not found.all():
         raise InputError(_carriers_missing(img, spec, found))
     window = int(round(1.0 / (_common_spacing(proj) * scale)))
