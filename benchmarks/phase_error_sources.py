@@ -13,7 +13,8 @@ albedo's part (the uniform-albedo row gains the most at 5 MP): divided by the tr
 true albedo smoothed over one demodulation window along the carriers or along the phase
 direction (`divided_by_albedo`), which tells which direction's albedo detail costs; and
 decoded with the phase carriers' envelopes refitted by a reference of the window fit that
-solves the carriers' couplings exactly (the compiled fit neglects them; `exact_envelopes`),
+solves the carriers' couplings exactly (`exact_envelopes`; the compiled fit neglected them
+until the fortieth session and solves them since, so that row now checks the two agree),
 without and with a correction for an albedo ramp common to all carriers in the window (the
 fit's DC ramp, which the carriers share, leaks into their neighbours); and with the phase
 carriers' envelopes from centred windows only (the Gray code from the usual placement, which
@@ -94,7 +95,8 @@ def exact_envelopes(image: np.ndarray, demod: Demodulated, carriers: Carriers, c
     """`demod` (the window demodulator's, rows orientation) with the envelopes of `channels`
     refitted: every window start of every line by the exact least-squares fit of a DC, a ramp
     and the carriers (the pseudo-inverse of the window's design matrix, so the carriers'
-    couplings, which the compiled fit neglects, are solved), at the window placement `demod`
+    couplings are solved, as the compiled fit has solved them since the fortieth session),
+    at the window placement `demod`
     chose for the pixel (`Demodulated.offset`), on the capture divided by its albedo steps as
     `demodulate_window` divides it.  A slow numpy reference, for measuring.
 

@@ -229,7 +229,9 @@ def test_refine_drops_the_pixels_beside_a_jump_where_the_wrong_periods_are(steps
     error = np.abs(every.proj_map - capture.truth.proj[..., 1])
     assert np.mean(error[dropped]) > 5 * np.mean(error[kept.valid])
     off = error > spec.fringe_period / 2
-    assert np.sum(dropped & off) > 0.2 * np.sum(every.valid & off)  # measured 29 %
+    # measured 19 % here, 18-22 % on seeds 2-4 (20-21 % before the window fit was solved
+    # exactly, fortieth session, which leaves 2-4 % fewer pixels a period off to catch)
+    assert np.sum(dropped & off) > 0.15 * np.sum(every.valid & off)
 
 
 def test_refine_drops_the_pixels_beside_a_jump_whose_window_lies_on_another_surface(steps_scan):
@@ -699,8 +701,10 @@ def test_the_frames_sides_decode_as_well_as_the_middle():
     # a noise-free plane facing the camera (ambient light and gamma 2.2, which the unmixing
     # takes out) at 1296x972, the smallest camera the phase channel is measured on: the line's
     # error within one window (45 px) of the frame's left and right sides, where the windows
-    # could not be centred, against the middle (measured 0.337 and 0.329 lines RMS; 0.701
-    # within it before the boxes there skipped the clamped windows)
+    # could not be centred, against the middle.  Measured 0.098 and 0.081 lines RMS since the
+    # window fit is solved exactly (fortieth session; 0.104 and 0.092 before, 0.337 and 0.329
+    # when this test was written); with the boxes clipped at the frame's ends 0.103 at the
+    # sides (0.53 before: the clamped windows at the sides were off until the fit was exact).
     rig = simulate.virtual_rig(camera_size=(1296, 972), projector_size=(1024, 768))
     spec = patterns.phase_spec((1024, 768))
     conditions = simulate.Conditions(albedo=simulate.UniformAlbedo(0.8), ambient=0.1, projector_gamma=2.2,
@@ -715,11 +719,11 @@ def test_the_frames_sides_decode_as_well_as_the_middle():
         return rms(np.concatenate([error[:, :45], error[:, -45:]], axis=1)), rms(error[:, 90:-90])
 
     sides, middle = sides_and_middle()
-    assert middle < 0.4
-    assert sides < 1.2 * middle
+    assert middle < 0.1
+    assert sides < 1.3 * middle
     clipped_sides, clipped_middle = sides_and_middle(frame_ends=False)  # the boxes clipped there
     assert clipped_middle == pytest.approx(middle, abs=1e-6)
-    assert clipped_sides > 1.8 * middle
+    assert sides < clipped_sides < 1.5 * middle
 
 
 def test_extending_fills_lit_pixels_the_gray_code_left_without_wrong_periods():

@@ -107,7 +107,9 @@ def test_cli_warns_when_almost_nothing_decodes(scan_folder: Path, small_rig: sim
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     best = patterns.default_spec(PROJECTOR)
     best.save(scan_folder / "cp.json")
-    blurred = capture(small_rig, patterns.render_pattern(best), projector_blur_px=2, camera_blur_px=2)
+    # 0.10 % of the frame decodes (blur 2 px: 1.7 % since the window fit is solved exactly,
+    # fortieth session, 0.75 % before; 2.15 px: the finest carrier is no longer found)
+    blurred = capture(small_rig, patterns.render_pattern(best), projector_blur_px=2.05, camera_blur_px=2.05)
     code, out, err = run_scan(scan_folder, blurred, monkeypatch)
     assert code == 0 and "points" in out and (scan_folder / "s.ply").exists()
     assert err.startswith("warning: capture.png: only ") and err.count("\n") == 1

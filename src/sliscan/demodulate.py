@@ -483,18 +483,13 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
 
 
 @numba.njit(cache=True, nogil=True)
-def _window_means(omega: NDArray[np.float64], length: int, weighted: bool) -> NDArray[np.complex128]:
-    """Mean over ``j = 0 .. length - 1`` of ``exp(i omega_n j)``, times ``j - (length - 1) / 2``
-    if `weighted`, one per frequency: ``(C,)``.  Unweighted: the geometric series' closed form."""
+def _window_means(omega: NDArray[np.float64], length: int) -> NDArray[np.complex128]:
+    """Mean over ``j = 0 .. length - 1`` of ``exp(i omega_n j)``, one per frequency: ``(C,)``
+    (the geometric series' closed form)."""
     out = np.zeros(omega.size, dtype=np.complex128)
-    centre = (length - 1) / 2
     for n in range(omega.size):
-        if weighted:
-            for j in range(length):
-                out[n] += np.exp(1j * omega[n] * j) * (j - centre)
-            out[n] /= length
-        elif abs(np.sin(omega[n] / 2)) < 1e-9:
-            out[n] = np.exp(1j * omega[n] * centre)
+        if abs(np.sin(omega[n] / 2)) < 1e-9:
+            out[n] = np.exp(1j * omega[n] * (length - 1) / 2)
         else:
             out[n] = (1 - np.exp(1j * omega[n] * length)) / (length * (1 - np.exp(1j * omega[n])))
     return out
@@ -530,16 +525,14 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
     from the centred window, and that window's offset into `centred_offset` ``(W,)``.
 
     The line is divided by its flat field, then every window sum comes from running sums.
-    Over one spacing period the carriers are nearly orthogonal to each other and to the DC,
-    but not to a ramp: an albedo gradient across the window would leak into every carrier.
-    With the couplings of the DC and the ramp to each carrier known in closed form for each
-    window start (``g_n`` = mean of ``exp(-i w_n x)``, ``h_n`` = mean of ``t exp(-i w_n
-    x)``, ``t`` the offset from the window's centre), the carriers are eliminated (``c_n = q_n
-    - d g_n - s h_n``, ``q_n`` the window mean of ``I exp(-i w_n x)``) and the remaining 2x2
-    system for the DC and the ramp is solved exactly.  Only the carriers' couplings to each
-    other (of the order of the window's rounding to whole pixels) are neglected.  The
-    unexplained energy, mean of ``(I - model)^2 = <I,I> - 2 <I,model> + <model,model>``, has
-    every Gram term exact, so the neglected couplings only enter it to second order.
+    In each window's own phase (the carriers' coefficients times ``exp(+i w_n s)``, ``s`` its
+    start) the Gram matrix of the basis (DC, ramp, each carrier's cosine and sine) is the same
+    for every start, so one inverse turns every start's projections (window means of the line
+    times each basis function) into its exact least-squares fit, and the unexplained energy is
+    the window's mean square less the projections times the fit.  (Until the fortieth session
+    the carriers' couplings to each other, of the order of the window's rounding to whole
+    pixels, were neglected and a 2x2 system solved for the DC and the ramp: docs/accuracy.md,
+    "The window fit solved exactly".)
 
     Each window start is fitted once.  A pixel keeps its centred window unless a one-sided
     one leaves less than `PLACEMENT_GAIN` of its unexplained energy and the least of all.
@@ -558,74 +551,36 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
     cum_q = np.empty((n_carriers, width + 1), dtype=np.complex128)
     for n in range(n_carriers):
         cum_q[n] = _cumsum0(block * phasors[n])
-    g0, h0 = np.conj(_window_means(omega, window, False)), np.conj(_window_means(omega, window, True))
-    near0 = _window_means(omega, short, False)
-    sums0 = np.empty((n_carriers, n_carriers), dtype=np.complex128)
-    diffs0 = np.empty((n_carriers, n_carriers), dtype=np.complex128)
-    for n in range(n_carriers):
-        sums0[n] = _window_means(omega[n] + omega, window, False)
-        diffs0[n] = _window_means(omega[n] - omega, window, False)
-    t2 = (window * window - 1) / 12.0
-    # In each window's own phase (coefficients times exp(+i w_n s)) the couplings g_n, h_n are
-    # the same for every start, and so is the 2x2 system for the DC and the ramp.
-    gg = 2 * np.sum(np.abs(g0) ** 2)
-    hh = 2 * np.sum(np.abs(h0) ** 2)
-    gh = 2 * np.sum((g0 * np.conj(h0)).real)
-    a11, a12, a21, a22 = 1 - gg, -gh, -gh, t2 - hh
-    det = a11 * a22 - a12 * a21
-    if abs(det) <= 1e-12:
-        det = 1e-12
-    # The fit depends on the window's start only: fit each start once, then pick per pixel.
-    # Each quantity is computed for all starts in turn (the innermost loops run over starts,
-    # which the compiler vectorises); per start the operations and their order are those of
-    # one start at a time.
+    near0 = _window_means(omega, short)
+    inverse = np.linalg.inv(_ramped_gram(omega, window, 0, 0))
     n_starts = width - window + 1
-    fit_u, fit_var, fit_d, fit_slope = np.empty(n_starts), np.empty(n_starts), np.empty(n_starts), np.empty(n_starts)
-    fit_c = np.empty((n_carriers, n_starts), dtype=np.complex128)  # in the window's phase
-    q = np.empty((n_carriers, n_starts), dtype=np.complex128)
-    m0, m1, b1, b2 = np.empty(n_starts), np.empty(n_starts), np.empty(n_starts), np.empty(n_starts)
-    cross, model_sq = np.empty(n_starts), np.empty(n_starts)
+    size = 2 + 2 * n_carriers
+    projections = np.empty((size, n_starts))  # in the window's phase
+    inv_window = 1.0 / window
     for s in range(n_starts):
         e = s + window
-        m0[s] = (cum_i[e] - cum_i[s]) / window
-        m1[s] = (cum_xi[e] - cum_xi[s]) / window - (s + (window - 1) / 2) * m0[s]
-        b1[s], b2[s] = m0[s], m1[s]
+        mean = (cum_i[e] - cum_i[s]) * inv_window
+        projections[0, s] = mean
+        projections[1, s] = ((cum_xi[e] - cum_xi[s]) * inv_window - (s + (window - 1) / 2) * mean) * inv_window
     for n in range(n_carriers):
         for s in range(n_starts):
-            q[n, s] = (cum_q[n, s + window] - cum_q[n, s]) / window * np.conj(phasors[n, s])
-            b1[s] -= 2 * (q[n, s] * np.conj(g0[n])).real
-            b2[s] -= 2 * (q[n, s] * np.conj(h0[n])).real
+            q = (cum_q[n, s + window] - cum_q[n, s]) * inv_window * np.conj(phasors[n, s])
+            projections[2 + 2 * n, s], projections[3 + 2 * n, s] = q.real, -q.imag
+    coefficients = inverse @ projections
+    explained = np.zeros(n_starts)
+    for k in range(size):
+        for s in range(n_starts):
+            explained[s] += projections[k, s] * coefficients[k, s]
+    fit_u, fit_var, fit_d, fit_slope = np.empty(n_starts), np.empty(n_starts), np.empty(n_starts), np.empty(n_starts)
     for s in range(n_starts):
-        d = (b1[s] * a22 - a12 * b2[s]) / det
-        slope = (a11 * b2[s] - a21 * b1[s]) / det
-        fit_d[s], fit_slope[s] = d, slope
-        cross[s] = d * m0[s] + slope * m1[s]
-        model_sq[s] = d * d + slope * slope * t2
+        mean_sq = (cum_i2[s + window] - cum_i2[s]) * inv_window
+        fit_d[s], fit_slope[s] = coefficients[0, s], coefficients[1, s] * inv_window
+        fit_u[s] = max(mean_sq - explained[s], 0.0)
+        fit_var[s] = max(mean_sq - projections[0, s] * projections[0, s], 0.0)
+    fit_c = np.empty((n_carriers, n_starts), dtype=np.complex128)  # in the window's phase
     for n in range(n_carriers):
         for s in range(n_starts):
-            c = q[n, s] - fit_d[s] * g0[n] - fit_slope[s] * h0[n]
-            fit_c[n, s] = c
-            cross[s] += 2 * (np.conj(c) * q[n, s]).real
-            model_sq[s] += 4 * fit_d[s] * (c * np.conj(g0[n])).real + 4 * fit_slope[s] * (c * np.conj(h0[n])).real
-    re, im = fit_c.real.copy(), fit_c.imag.copy()  # the pairs in real arithmetic (it vectorises)
-    for n in range(n_carriers):
-        # pairs (n, m >= n): the sum and difference frequencies' window means
-        sr, si = sums0[n, n].real, sums0[n, n].imag
-        for s in range(n_starts):
-            pr = re[n, s] * re[n, s] - im[n, s] * im[n, s]  # c_n c_n
-            pi = re[n, s] * im[n, s] + im[n, s] * re[n, s]
-            model_sq[s] += 2 * (pr * sr - pi * si) + 2 * (re[n, s] ** 2 + im[n, s] ** 2)
-        for m in range(n + 1, n_carriers):
-            sr, si, dr, di = sums0[n, m].real, sums0[n, m].imag, diffs0[n, m].real, diffs0[n, m].imag
-            for s in range(n_starts):
-                pr = re[n, s] * re[m, s] - im[n, s] * im[m, s]  # c_n c_m
-                pi = re[n, s] * im[m, s] + im[n, s] * re[m, s]
-                qr = re[n, s] * re[m, s] + im[n, s] * im[m, s]  # c_n conj(c_m)
-                qi = im[n, s] * re[m, s] - re[n, s] * im[m, s]
-                model_sq[s] += 4 * (pr * sr - pi * si) + 4 * (qr * dr - qi * di)
-    for s in range(n_starts):
-        mean_sq = (cum_i2[s + window] - cum_i2[s]) / window
-        fit_u[s], fit_var[s] = max(mean_sq - 2 * cross[s] + model_sq[s], 0.0), max(mean_sq - m0[s] * m0[s], 0.0)
+            fit_c[n, s] = 0.5 * (coefficients[2 + 2 * n, s] - 1j * coefficients[3 + 2 * n, s])
     chosen, near, prediction = np.empty(width, np.intp), np.empty(width, np.intp), np.empty(width)
     for xi in range(width):
         best, placement = _window_start(xi, width, window, 0), 0
@@ -639,7 +594,7 @@ def _fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int
         ns = _window_start(xi, width, short, placement) if width >= short else 0
         near[xi] = ns
         prediction[xi] = fit_d[best] + fit_slope[best] * (ns + (short - 1) / 2 - (best + (window - 1) / 2))
-    rotated = q  # the projections are no longer needed: their memory takes the carriers in image phase
+    rotated = np.empty((n_carriers, n_starts), dtype=np.complex128)  # the carriers in image phase
     for n in range(n_carriers):
         for s in range(n_starts):  # the prediction's first product, once per start
             rotated[n, s] = fit_c[n, s] * phasors[n, s]
@@ -721,9 +676,9 @@ def _scale_errors(fitted: NDArray[np.complex128], phasors: NDArray[np.complex128
 
 @numba.njit(cache=True, nogil=True)
 def _ramped_gram(omega: NDArray[np.float64], length: int, first: int, ramped: int) -> NDArray[np.float64]:
-    """Gram matrix of `_fit_ramped`'s basis over a window of `length` pixels, in the window's
-    own phase: ``1, t, cos(w_n u), sin(w_n u)`` for every carrier, then ``t cos(w_n u), t sin(w_n
-    u)`` for the `ramped` carriers from `first` on (``u`` the pixel in the window, ``t`` its
+    """Gram matrix of the window fits' basis over a window of `length` pixels, in the window's
+    own phase: ``1, t, cos(w_n u), sin(w_n u)`` for every carrier, then (`_fit_ramped`'s) ``t
+    cos(w_n u), t sin(w_n u)`` for the `ramped` carriers from `first` on (``u`` the pixel in the window, ``t`` its
     offset from the window's centre over `length`)."""
     n_carriers = omega.size
     size = 2 + 2 * n_carriers + 2 * ramped
