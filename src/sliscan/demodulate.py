@@ -678,8 +678,8 @@ def _scale_errors(fitted: NDArray[np.complex128], phasors: NDArray[np.complex128
 def _ramped_gram(omega: NDArray[np.float64], length: int, first: int, ramped: int) -> NDArray[np.float64]:
     """Gram matrix of the window fits' basis over a window of `length` pixels, in the window's
     own phase: ``1, t, cos(w_n u), sin(w_n u)`` for every carrier, then (`_fit_ramped`'s) ``t
-    cos(w_n u), t sin(w_n u)`` for the `ramped` carriers from `first` on (``u`` the pixel in the window, ``t`` its
-    offset from the window's centre over `length`)."""
+    cos(w_n u), t sin(w_n u)`` for the `ramped` carriers from `first` on (``u`` the pixel in
+    the window, ``t`` its offset from the window's centre over `length`)."""
     n_carriers = omega.size
     size = 2 + 2 * n_carriers + 2 * ramped
     basis = np.empty((size, length))
