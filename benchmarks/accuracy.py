@@ -96,8 +96,6 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (levels from single pixels)": ("sliscan 4-bit + phase",
                                                           dict(fringe_options=dict(average_levels=False))),
     "sliscan 4-bit + phase (no recentring)": ("sliscan 4-bit + phase", dict(fringe_options=dict(recentre_phase=False))),
-    "sliscan 4-bit + phase (no window-contrast test)": ("sliscan 4-bit + phase",
-                                                        dict(fringe_options=dict(max_window_contrast=float("inf")))),
     "sliscan 4-bit + phase (DC-weighted phasors)": ("sliscan 4-bit + phase",
                                                     dict(fringe_options=dict(dc_weights=True))),
     "sliscan 4-bit + phase (boxes stop at gaps)": ("sliscan 4-bit + phase", dict(fringe_options=dict(bridge=False))),

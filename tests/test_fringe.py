@@ -205,17 +205,6 @@ def steps_scan(rig):
     return capture, spec, stages.demodulated, stages.carriers, decode(stages.demodulated, spec)
 
 
-def test_refine_drops_exactly_the_pixels_whose_window_lies_on_another_surface(steps_scan):
-    _, spec, demod, carriers, gray = steps_scan
-    kept, every = (fringe.refine(gray, demod, carriers, spec, max_window_contrast=k, edge_margin=False, **LATER_OFF)
-                   for k in (fringe.MAX_WINDOW_CONTRAST, np.inf))
-    contrast = fringe.window_contrast(demod.dc, demod.offset, carriers.line_windows())
-    across = (contrast > fringe.MAX_WINDOW_CONTRAST) | (contrast < 1 / fringe.MAX_WINDOW_CONTRAST)
-    dropped = dropped_exactly(kept, every, across)
-    assert np.all(kept.stripe[dropped] == -1)
-    assert 0 < np.sum(dropped) < 0.05 * every.valid.sum()
-
-
 def test_refine_drops_the_pixels_beside_a_jump_where_the_wrong_periods_are(steps_scan):
     capture, spec, demod, carriers, gray = steps_scan
     kept, every = (fringe.refine(gray, demod, carriers, spec, edge_margin=margin, **LATER_OFF)

@@ -46,23 +46,22 @@ Stages, each its own function:
 5. Pixels the Gray code left out are unwrapped against the mean line of the kept pixels
    around them (`neighbour_lines`), if those lie on one surface and the pixel's own phase
    carriers stand above the noise (`refine`'s `extend`).
-6. Pixels whose demodulation window lies on a surface several times brighter or darker than
-   themselves are dropped (`window_contrast`): their envelopes describe that surface.
-7. So are the pixels next to a depth edge, within a small margin (`near_jumps`, `EDGE_MARGIN`):
+6. Pixels next to a depth edge are dropped, within a small margin (`near_jumps`, `EDGE_MARGIN`):
    there the windows and boxes reach across it, and where its jump is close to a whole fringe
    period a wrong stripe goes unnoticed.
-8. Within half a window of such a jump (across the undecoded gap that usually lies beside it),
-   also the pixels whose window contrast is above 2 (`NEAR_JUMP_CONTRAST`): a window reaching
+7. Within half a window of such a jump (across the undecoded gap that usually lies beside it),
+   also the pixels whose demodulation window lies on a surface more than twice as bright or as
+   dark as themselves (`window_contrast` above `NEAR_JUMP_CONTRAST`): a window reaching
    onto the other surface, where far from any jump the same contrast is an albedo edge; and
    the runs along the carriers shorter than an eighth of a window (`SHORT_RUN`), which no
    window lying on them describes, and those shorter than half a window whose window
    contrast is above 1.5 (`MID_RUN`).
-9. Then the pixels at the ends of runs (down the phase direction, and along the carriers on the
+8. Then the pixels at the ends of runs (down the phase direction, and along the carriers on the
    capture itself) whose light puts their centre on the shadow's side of a light edge
    (`sliscan.outliers.shadow_side`): blur, or a window ending at them, lends them the lit
    side's code.
-10. Last, the ring of pixels next to any pixel not kept (`beside_gaps`, `GAP_RING`): whatever
-    made that one fail reaches them a little less, and the error grows toward every gap.
+9. Last, the ring of pixels next to any pixel not kept (`beside_gaps`, `GAP_RING`): whatever
+   made that one fail reaches them a little less, and the error grows toward every gap.
 
 Measured on the virtual rig: docs/accuracy.md, "Sub-stripe depth from one frame".
 """
@@ -902,7 +901,7 @@ def window_contrast(dc: NDArray[np.float32], offset: NDArray[np.float32],
     takes the window that fits best, and where the pixel's own side is dark (a sphere's limb
     under grazing light beside a bright wall) that is the window on the other surface; its
     envelopes, Gray code and fringe are that surface's, which `refine` cannot tell from the
-    pixel's own when the depth edge's jump is close to a whole fringe period (`MAX_WINDOW_CONTRAST`).
+    pixel's own when the depth edge's jump is close to a whole fringe period (`NEAR_JUMP_CONTRAST`).
     """
     out = np.empty(dc.shape, np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, dc.shape[:1]), dtype=np.intp)
@@ -928,14 +927,6 @@ ONE_SIDED_MIN_CHANGE = 4.0
 #: end of a straight line fitted over two periods (four times its centre's variance, which is
 #: half the one-period fit's).
 ONE_SIDED_VARIANCE = 2.0
-
-#: `refine` drops the pixels whose `window_contrast` exceeds this or is below its inverse.
-#: Measured on the virtual rig's sphere and steps (5 MP seed 0 and 1296x972 seed 1, smooth and
-#: checkered albedo; docs/accuracy.md, "Sub-stripe depth from one frame"): at 3 it catches 25-49 % of the
-#: whole-period slips on the 5 MP spheres and 16-37 % on the checkered 1296x972 ones, for 0.03-0.4 %
-#: of the correct pixels (a checker edge of contrast 3.6 inside a window is the most it takes);
-#: at 2.5 the checkered sphere loses 2 % of its correct pixels, at 2 the smooth one 2.6 %.
-MAX_WINDOW_CONTRAST = 3.0
 
 #: `refine` drops the pixels within this fraction of a demodulation window (a square of
 #: ``2 r + 1`` pixels, ``r`` at least 1: 6 px at 5 MP, 3 px at 1296x972) of a jump of more than
@@ -1012,7 +1003,7 @@ GAP_RING = 1
 def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: PatternSpec, *,
            max_disagreement: float = 0.5, min_modulation: float = 0.5, smooth: bool = True,
            rescue: bool = True, extend: bool = True, unmix: bool = True, average_levels: bool = True,
-           recentre_phase: bool = True, max_window_contrast: float = MAX_WINDOW_CONTRAST,
+           recentre_phase: bool = True,
            dc_weights: bool = False, bridge: bool = True, recentre_rows: bool = True,
            edge_margin: bool = True, near_jump_contrast: float = NEAR_JUMP_CONTRAST,
            short_run: float = SHORT_RUN, mid_run_contrast: float = MID_RUN_CONTRAST, shadow_sides: bool = True,
@@ -1062,10 +1053,6 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     recentre_phase : bool
         Move each summed phasor back to its pixel (`recentre`); if false, leave it where its
         windows and box describe the fringe (for the benchmark's record).
-    max_window_contrast : float
-        Drop the pixels whose DC differs from their window's mean DC by more than this factor
-        (`window_contrast`: the window describes another surface); ``inf`` keeps them (for the
-        benchmark's record).  Needs the window demodulator's offsets (skipped without them).
     dc_weights : bool
         Weight each pixel's phasor by its DC in the box sums (`phasors`; for the benchmark's record).
     bridge : bool
@@ -1225,9 +1212,6 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
             return None
         return (contrast > limit) | (contrast < 1 / limit)
 
-    across = beyond(max_window_contrast)
-    if across is not None:
-        out[across], stripe[across] = np.nan, -1
     if edge_margin:
         near = near_jumps(out, radius=max(1, int(round(EDGE_MARGIN * carriers.window))), jump=0.5 * period)
         out[near], stripe[near] = np.nan, -1
