@@ -715,14 +715,20 @@ def test_the_frames_sides_decode_as_well_as_the_middle():
     assert sides < clipped_sides < 1.5 * middle
 
 
-def test_extending_fills_lit_pixels_the_gray_code_left_without_wrong_periods():
-    # 1296x972 is the smallest camera where the seven carriers leave room for it (at 640x480
-    # the finest carrier has 2.5 pixels a period and most of the sphere fails the Gray code)
+def checkered_capture(scene: simulate.Surface, seed: int) -> tuple[simulate.Rig, PatternSpec, simulate.Capture]:
+    """The phase pattern on `scene` painted with a 40 mm checker (0.25 / 0.9) under realistic
+    light, at 1296x972: the smallest camera where the seven carriers leave room for the phase
+    channel's tests (at 640x480 the finest carrier has 2.5 pixels a period and most of a sphere
+    fails the Gray code)."""
     rig = simulate.virtual_rig(camera_size=(1296, 972), projector_size=(1024, 768))
     spec = patterns.phase_spec((1024, 768))
     conditions = simulate.Conditions(albedo=simulate.CheckerAlbedo(square_mm=40, low=0.25, high=0.9), ambient=0.1,
-                                     projector_gamma=2.2, projector_blur_px=1.0, camera_blur_px=1.0, seed=5)
-    capture = simulate.render(rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+                                     projector_gamma=2.2, projector_blur_px=1.0, camera_blur_px=1.0, seed=seed)
+    return rig, spec, simulate.render(rig, scene, patterns.render_pattern(spec), conditions)
+
+
+def test_extending_fills_lit_pixels_the_gray_code_left_without_wrong_periods():
+    rig, spec, capture = checkered_capture(simulate.sphere_scene(), seed=5)
     stages = Scanner(spec, rig.calibration).scan_stages(capture.image)[1]
     truth = capture.truth
     gray = decode(stages.demodulated, spec)
@@ -747,11 +753,7 @@ def test_pixels_whose_window_lies_across_an_albedo_edge_are_kept_and_right():
     # a factor of 3 or more (a checker of contrast 3.6), the window lies across a checker edge and
     # the phase is still right; `refine` dropped such pixels until the forty-first session
     # (docs/accuracy.md, "The window-contrast test dropped"); depth edges are tested next to jumps
-    rig = simulate.virtual_rig(camera_size=(1296, 972), projector_size=(1024, 768))
-    spec = patterns.phase_spec((1024, 768))
-    conditions = simulate.Conditions(albedo=simulate.CheckerAlbedo(square_mm=40, low=0.25, high=0.9), ambient=0.1,
-                                     projector_gamma=2.2, projector_blur_px=1.0, camera_blur_px=1.0, seed=3)
-    capture = simulate.render(rig, simulate.tilted_plane_scene(), patterns.render_pattern(spec), conditions)
+    rig, spec, capture = checkered_capture(simulate.tilted_plane_scene(), seed=3)
     result, stages = Scanner(spec, rig.calibration).scan_stages(capture.image)
     truth = capture.truth
     contrast = fringe.window_contrast(stages.demodulated.dc, stages.demodulated.offset, stages.carriers.line_windows())
