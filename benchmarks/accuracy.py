@@ -92,6 +92,8 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (no smoothing)": ("sliscan 4-bit + phase", dict(fringe_options=dict(smooth=False))),
     "sliscan 4-bit + phase (no rescue)": ("sliscan 4-bit + phase", dict(fringe_options=dict(rescue=False))),
     "sliscan 4-bit + phase (no extension)": ("sliscan 4-bit + phase", dict(fringe_options=dict(extend=False))),
+    "sliscan 4-bit + phase (extension unlimited)": ("sliscan 4-bit + phase",
+                                                    dict(fringe_options=dict(extend_reach=0))),
     "sliscan 4-bit + phase (no unmixing)": ("sliscan 4-bit + phase", dict(fringe_options=dict(unmix=False))),
     "sliscan 4-bit + phase (levels from single pixels)": ("sliscan 4-bit + phase",
                                                           dict(fringe_options=dict(average_levels=False))),
