@@ -988,9 +988,10 @@ EXTEND_SNR = 4.0
 #: Without that limit the joins reached up to tens of pixels into the gaps, and the deeper
 #: ones were the worse: on the virtual rig's 5 MP smooth sphere the joined pixels (3.3 % of
 #: the lit ones) had 7.7 mm RMS error against 2.3 mm for the others, 3.5 mm next to a kept
-#: pixel and 17 mm more than 12 px from one.  One pixel: RMS 2-4 % lower on average on 30
-#: captures (four rigs, five seeds; smooth 5 MP sphere 2.71 -> 2.48 mm), medians 0.5-0.7 %
-#: lower, for 0.2-0.4 points of completeness (docs/accuracy.md, "The extension's reach").
+#: pixel and 17 mm more than 12 px from one.  One pixel: RMS 0.1-11 % lower on each of 36
+#: captures (three cameras, five seeds; 2-4 % on average; smooth 5 MP sphere 2.71 -> 2.48 mm),
+#: medians 0-2 % lower, for 0-1.0 points of completeness (0.2-0.4 on average; docs/accuracy.md,
+#: "The extension's reach").
 EXTEND_REACH = 1
 
 #: `refine` drops, last, the kept pixels within this many pixels (8-connected steps) of a pixel
