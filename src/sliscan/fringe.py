@@ -1275,10 +1275,7 @@ def beside_gaps(kept: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
     >>> bool(beside_gaps(np.ones((3, 3), bool), 1).any())
     False
     """
-    mask = kept.astype(np.uint8)
-    inner = cv2.erode(mask, np.ones((3, 3), np.uint8), iterations=rings, borderType=cv2.BORDER_CONSTANT,
-                      borderValue=1)
-    return kept & (inner == 0)
+    return kept & within(~kept, rings)
 
 
 @numba.njit(cache=True, nogil=True)
