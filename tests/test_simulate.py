@@ -12,6 +12,7 @@ from sliscan.simulate import (
     Box,
     CheckerAlbedo,
     Conditions,
+    Cylinder,
     Mat5Surface,
     Pinhole,
     Plane,
@@ -24,6 +25,7 @@ from sliscan.simulate import (
     board_scene,
     camera_view,
     circle_grid_scene,
+    cylinder_scene,
     plane_scene,
     projector_rows,
     projector_view,
@@ -31,6 +33,7 @@ from sliscan.simulate import (
     render_sequence,
     sphere_scene,
     steps_scene,
+    objects_scene,
     tilted_plane_scene,
     virtual_rig,
 )
@@ -225,6 +228,47 @@ def test_sphere_shadow_matches_shadow_rays(rig, sphere_capture):
     np.testing.assert_array_equal(truth.lit[wall & inside], ~blocked)
     # The shadow falls below the sphere (the projector is above the camera).
     assert np.median(X[blocked][:, 1]) > 0
+
+
+@pytest.mark.parametrize("axis", ["y", "x"])
+def test_cylinder_hits_lie_on_its_surface_nearest_first(axis):
+    rng = np.random.default_rng(3)
+    centre, radius, height = np.array([10.0, -200.0, 800.0]), 90.0, 240.0  # the camera below its lower cap
+    cyl = Cylinder(tuple(centre), radius, height, axis=axis)
+    along = 0 if axis == "x" else 1
+    across = [k for k in range(3) if k != along]
+    dirs = np.column_stack([rng.uniform(-0.4, 0.2, 4000), rng.uniform(-0.4, 0.2, 4000), np.ones(4000)])
+    t, normal = cyl.intersect(np.zeros_like(dirs), dirs)
+    hit = np.isfinite(t)
+    assert 0.1 < hit.mean() < 0.9  # some rays pass beside or beyond it
+    rel = t[hit, None] * dirs[hit] - centre
+    radial = np.linalg.norm(rel[:, across], axis=1)
+    on_side = np.abs(radial - radius) < 1e-6
+    on_cap = np.abs(np.abs(rel[:, along]) - height / 2) < 1e-6
+    assert np.all((on_side & (np.abs(rel[:, along]) <= height / 2 + 1e-6)) | (on_cap & (radial <= radius + 1e-6)))
+    assert on_side.sum() > 100 and (on_cap.sum() > 10) == (axis == "y")  # the camera sees the upright one's cap
+    np.testing.assert_allclose(np.linalg.norm(normal[hit], axis=1), 1.0, atol=1e-12)
+    assert np.all(np.sum(normal[hit] * dirs[hit], axis=1) <= 0)
+    # the side's normal is radial, a cap's along the axis
+    side_normal = np.zeros_like(rel[on_side])
+    side_normal[:, across] = rel[on_side][:, across] / radius
+    np.testing.assert_allclose(normal[hit][on_side], side_normal, atol=1e-9)
+    # nearest first: a point a little before the hit lies outside, one a little after inside
+    before, after = rel - 1e-3 * dirs[hit], rel + 1e-3 * dirs[hit]
+    inside = lambda q: (np.linalg.norm(q[:, across], axis=1) < radius) & (np.abs(q[:, along]) < height / 2)  # noqa: E731
+    assert not inside(before).any() and inside(after).all()
+    # a ray through the axis meets the side face-on at the closed-form depth
+    t0, _ = cyl.intersect([[0.0, 0.0, 0.0]], [list(centre)])
+    assert abs(t0[0] - (1 - radius / np.linalg.norm(centre[across]))) < 1e-12
+
+
+def test_cylinder_and_objects_scenes_render_with_shadows(rig):
+    for scene in (cylinder_scene(), objects_scene()):
+        truth = render(rig, scene, np.ones(rig.projector.shape), Conditions.ideal()).truth
+        z = truth.points[..., 2][truth.surface]
+        assert z.min() < 760 and np.isclose(z.max(), 1000.0, atol=XYZ_ATOL)  # objects before the wall
+        assert (truth.surface & ~truth.lit).mean() > 0.005  # cast shadows the camera sees
+        assert np.nanmax(np.abs(np.diff(truth.points[..., 2], axis=1))) > 50  # depth edges at the silhouettes
 
 
 def test_steps_shadows_where_geometry_says(rig):
@@ -553,6 +597,8 @@ def test_bad_projected_raises(rig):
         (lambda: Plane((0, 0, 0), (0, 0, 0)), "normal must be non-zero"),
         (lambda: Sphere((0, 0, 800), -1.0), "radius must be positive"),
         (lambda: Box((0, 0, 0), (1, -1, 1)), "lo must be below hi"),
+        (lambda: Cylinder((0, 0, 800), 50.0, 0.0), "radius and height must be positive"),
+        (lambda: Cylinder((0, 0, 800), 50.0, 10.0, axis="z"), "axis must be 'x' or 'y'"),
         (lambda: Union(), "Union needs one or more surfaces"),
         (lambda: virtual_rig(distance_mm=-5.0), "distance_mm must be positive"),
         (lambda: virtual_rig(camera_fov_deg=190.0), r"camera_fov_deg must lie in \(0, 180\)"),

@@ -65,6 +65,8 @@ SCENES: dict[str, Callable[..., simulate.Surface]] = {
     "plane": simulate.plane_scene,
     "tilted": simulate.tilted_plane_scene,
     "steps": simulate.steps_scene,
+    "cylinder": simulate.cylinder_scene,
+    "objects": simulate.objects_scene,
 }
 
 #: Surface textures of `sliscan simulate --albedo`, by name; each takes the seed.

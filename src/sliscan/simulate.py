@@ -21,7 +21,7 @@ float32 in [0, 1].  Every rig is built from a `Calibration` (two 3x4 pinhole mat
 distortion), so a real scanner's calibration can drive the simulator too.
 
 Scenes are surfaces with one vectorised method, ``intersect(origins, dirs) -> (t, normal)``,
-used for camera rays and shadow rays alike.  `Plane`, `Sphere` and `Box` are analytic;
+used for camera rays and shadow rays alike.  `Plane`, `Sphere`, `Box` and `Cylinder` are analytic;
 `Union` keeps the nearest hit; `Mat5Surface` triangulates a scanned point grid (chapter 5) and
 intersects rays exactly with its triangles, found through a perspective bin grid (see its
 docstring).
@@ -581,6 +581,69 @@ class Sphere:
 
 
 @dataclass(frozen=True)
+class Cylinder:
+    """A closed circular cylinder of `radius` (mm) and `height` (mm), centred on `center` (mm),
+    its axis along the world's `axis` (``"y"``: upright, the camera's down direction; ``"x"``:
+    lying along the rows).  Its two end caps are flat discs.
+
+    Examples
+    --------
+    >>> t, n = Cylinder((0.0, 0.0, 800.0), 100.0, 300.0).intersect([[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    >>> float(t[0]), n[0].tolist()
+    (700.0, [0.0, 0.0, -1.0])
+    >>> float(Cylinder((0.0, 0.0, 800.0), 100.0, 300.0).intersect([[0.0, 0.0, 0.0]], [[0.0, 1.0, 1.0]])[0][0])
+    inf
+    """
+
+    center: tuple[float, float, float]
+    radius: float
+    height: float
+    axis: str = "y"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", _vec3("center", self.center))
+        if not (math.isfinite(self.radius) and self.radius > 0 and math.isfinite(self.height) and self.height > 0):
+            raise InputError(f"radius and height must be positive, got {self.radius} and {self.height}")
+        if self.axis not in ("x", "y"):
+            raise InputError(f"axis must be 'x' or 'y', got {self.axis!r}")
+        object.__setattr__(self, "radius", float(self.radius))
+        object.__setattr__(self, "height", float(self.height))
+
+    def intersect(self, origins: ArrayLike, dirs: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """See `Surface.intersect`: the side's two roots within the height, and both caps."""
+        o, d = _as_rays(origins, dirs)
+        along = 0 if self.axis == "x" else 1
+        across = [k for k in range(3) if k != along]
+        rel = o - np.array(self.center)
+        ra, da = rel[:, across], d[:, across]
+        a = _dot(da, da)
+        half_b = _dot(da, ra)
+        c = _dot(ra, ra) - self.radius**2
+        disc = half_b**2 - a * c
+        root = np.sqrt(np.maximum(disc, 0.0))
+        half = self.height / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            side = [np.where((disc >= 0) & (a > 0) & (np.abs(rel[:, along] + t * d[:, along]) <= half), t, np.nan)
+                    for t in ((-half_b - root) / a, (-half_b + root) / a)]
+            caps = []
+            for end in (-half, half):
+                t = (end - rel[:, along]) / d[:, along]
+                hit = rel + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+                caps.append(np.where(_dot(hit[:, across], hit[:, across]) <= self.radius**2, t, np.nan))
+        roots = np.stack(side + caps)
+        t = np.min(np.where(roots > _T_MIN, roots, np.inf), axis=0)
+        first = np.argmin(np.where(roots > _T_MIN, roots, np.inf), axis=0)
+        point = rel + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        normal = point.copy()
+        normal[:, along] = 0.0
+        normal /= self.radius
+        on_cap = first >= 2
+        normal[on_cap] = 0.0
+        normal[on_cap, along] = np.where(first[on_cap] == 2, -1.0, 1.0)
+        return t, _facing(normal, d)
+
+
+@dataclass(frozen=True)
 class Box:
     """An axis-aligned box between corners `lo` and `hi` (mm)."""
 
@@ -960,6 +1023,38 @@ def steps_scene(
         for k in range(count)
     ]
     return Union(*boxes, Plane.at_z(wall))
+
+
+def cylinder_scene(
+    *, radius_mm: float = 100.0, height_mm: float = 320.0, distance_mm: float = 800.0, background_mm: float = 200.0
+) -> Surface:
+    """An upright cylinder (a can, a pipe) in front of a wall: a surface curved across the
+    carriers only, its sides turning away from camera and projector alike.
+
+    Parameters
+    ----------
+    radius_mm, height_mm : float
+        The cylinder's size in mm.
+    distance_mm : float
+        Depth of its axis, on the camera axis, in mm.
+    background_mm : float
+        The wall (a fronto-parallel plane) lies this far behind the axis, in mm.
+    """
+    if not background_mm > radius_mm:
+        raise InputError(f"background_mm must exceed radius_mm ({radius_mm}), got {background_mm}")
+    return Union(Cylinder((0.0, 0.0, distance_mm), radius_mm, height_mm), Plane.at_z(distance_mm + background_mm))
+
+
+def objects_scene(*, distance_mm: float = 800.0) -> Surface:
+    """A cluttered table-top: two spheres (radii 70 and 50 mm), a box, and a cylinder lying
+    along the rows, at different depths around `distance_mm` (mm) in front of a wall 200 mm
+    behind it.  Many depth edges, occlusions and cast shadows of several widths, and none of the
+    other scenes' sizes: the scene for measuring what a decoder tuned on those does elsewhere.
+    """
+    z = distance_mm
+    return Union(Sphere((-95.0, 25.0, z - 40.0), 70.0), Sphere((85.0, -45.0, z + 30.0), 50.0),
+                 Box((30.0, 40.0, z - 40.0), (150.0, 150.0, z + 200.0)),
+                 Cylinder((-60.0, -110.0, z + 60.0), 35.0, 220.0, axis="x"), Plane.at_z(z + 200.0))
 
 
 def circle_target_scene(
