@@ -137,6 +137,8 @@ DECODER_VARIANTS = {
     "sliscan 4-bit + phase (chosen windows' borders)": ("sliscan 4-bit + phase", dict(centred_borders=False)),
     "thesis 4-bit (no typical slope)": ("thesis 4-bit", dict(typical_slope=False)),
     "sliscan 4-bit (no typical slope)": ("sliscan 4-bit", dict(typical_slope=False)),
+    "thesis 4-bit (no lines beside)": ("thesis 4-bit", dict(lines_beside=False)),
+    "sliscan 4-bit (no lines beside)": ("sliscan 4-bit", dict(lines_beside=False)),
 }
 
 
