@@ -631,8 +631,9 @@ class Cylinder:
                 hit = rel + np.where(np.isfinite(t), t, 0.0)[:, None] * d
                 caps.append(np.where(_dot(hit[:, across], hit[:, across]) <= self.radius**2, t, np.nan))
         roots = np.stack(side + caps)
-        t = np.min(np.where(roots > _T_MIN, roots, np.inf), axis=0)
-        first = np.argmin(np.where(roots > _T_MIN, roots, np.inf), axis=0)
+        roots = np.where(roots > _T_MIN, roots, np.inf)  # NaN (no hit) compares false
+        first = np.argmin(roots, axis=0)  # 0, 1: the side; 2, 3: the caps
+        t = roots[first, np.arange(len(d))]
         point = rel + np.where(np.isfinite(t), t, 0.0)[:, None] * d
         normal = point.copy()
         normal[:, along] = 0.0

@@ -413,7 +413,7 @@ def lines_beside(line: NDArray[np.float32], stripe: NDArray[np.int16], known: ND
     line : (H, W) float array
         Projector lines (camera orientation); read where `known`.
     stripe : (H, W) int array
-        Stripe indices, in ``[0, spec.stripes)`` where `known` or `wanted`.
+        Stripe indices; pixels whose index lies outside ``[0, spec.stripes)`` are left out.
     known, wanted : (H, W) bool arrays
     spec : PatternSpec
         The pattern (its orientation says which way the carriers run).
@@ -428,7 +428,9 @@ def lines_beside(line: NDArray[np.float32], stripe: NDArray[np.int16], known: ND
     [nan, 12.0, nan, nan]
     """
     frame = lambda a: np.ascontiguousarray(along_carriers(a, spec))  # noqa: E731  (a transpose for columns)
-    values, stripes, have, need = frame(line.astype(np.float32)), frame(stripe.astype(np.int16)), frame(known), frame(wanted)
+    inside = (stripe >= 0) & (stripe < spec.stripes)  # the kernel indexes its per-stripe sums by them
+    values, stripes = frame(line.astype(np.float32)), frame(stripe.astype(np.int16))
+    have, need = frame(known & inside), frame(wanted & inside)
     out = np.full(values.shape, np.nan, np.float32)
     over_rows(lambda rows: _beside_rows(values, stripes, have, need, reach, rows_reach, spec.stripes, rows, out),
               values.shape[0])
