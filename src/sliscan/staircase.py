@@ -390,13 +390,16 @@ def _beside_rows(line: NDArray[np.float32], stripe: NDArray[np.int16], known: ND
         r0, r1 = max(0, r - rows_reach), min(height, r + rows_reach + 1)
         for x in range(-reach, width):
             enter, leave = x + reach, x - reach - 1
-            for q in range(r0, r1):
-                if enter < width and known[q, enter]:
-                    total[stripe[q, enter]] += line[q, enter]
-                    count[stripe[q, enter]] += 1
-                if leave >= 0 and known[q, leave]:
-                    total[stripe[q, leave]] -= line[q, leave]
-                    count[stripe[q, leave]] -= 1
+            if enter < width:
+                for q in range(r0, r1):
+                    if known[q, enter]:
+                        total[stripe[q, enter]] += line[q, enter]
+                        count[stripe[q, enter]] += 1
+            if leave >= 0:
+                for q in range(r0, r1):
+                    if known[q, leave]:
+                        total[stripe[q, leave]] -= line[q, leave]
+                        count[stripe[q, leave]] -= 1
             if x >= 0 and wanted[r, x] and count[stripe[r, x]] > 0:
                 out[r, x] = total[stripe[r, x]] / count[stripe[r, x]]
 
@@ -429,7 +432,7 @@ def lines_beside(line: NDArray[np.float32], stripe: NDArray[np.int16], known: ND
     """
     frame = lambda a: np.ascontiguousarray(along_carriers(a, spec))  # noqa: E731  (a transpose for columns)
     inside = (stripe >= 0) & (stripe < spec.stripes)  # the kernel indexes its per-stripe sums by them
-    values, stripes = frame(line.astype(np.float32)), frame(stripe.astype(np.int16))
+    values, stripes = frame(line.astype(np.float32, copy=False)), frame(stripe.astype(np.int16, copy=False))
     have, need = frame(known & inside), frame(wanted & inside)
     out = np.full(values.shape, np.nan, np.float32)
     over_rows(lambda rows: _beside_rows(values, stripes, have, need, reach, rows_reach, spec.stripes, rows, out),
