@@ -20,6 +20,7 @@ from sliscan import patterns, sequences, simulate
 from sliscan._validate import read_image
 from sliscan.formats import mat5, npz, ply, premat5
 from sliscan.formats.calibration import read_matrix_txt, write_matrix_txt
+from sliscan.outliers import default_max_jump, remove_run_ends
 from sliscan.pipeline import Scanner, stripe_tilt_deg
 from sliscan.reconstruct import triangulate_points
 from sliscan.types import Calibration, PatternSpec
@@ -269,6 +270,24 @@ def test_scan_without_albedo_steps_is_the_scanner_without_them(plane: tuple[Path
     assert not np.array_equal(plain.confidence, steps.confidence)
     np.testing.assert_array_equal(from_cli.valid, plain.valid)
     np.testing.assert_array_equal(from_cli.confidence, plain.confidence)
+
+
+def test_scan_trim_edges_trims_the_run_ends_as_the_scanner_does(plane: tuple[Path, str], tmp_path: Path) -> None:
+    """--trim-edges reaches the scanner (``Scanner(trim_edges=)``): the plane's scan less the
+    pixels within the margin of each run's ends along the carriers (here the frame's edges and
+    the projected area's)."""
+    folder, _ = plane
+    ok("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+       "--trim-edges", "4", "--npz", "trimmed.npz", cwd=tmp_path)
+    trimmed = npz.read_scan_npz(tmp_path / "trimmed.npz")
+    full = npz.read_scan_npz(folder / "out" / "plane.npz")
+    spec = PatternSpec.load(folder / "cp.json")
+    expected = remove_run_ends(full.proj_map, full.valid, margin=4, max_jump=default_max_jump(spec, "rows"))
+    np.testing.assert_array_equal(trimmed.valid, expected)
+    assert 0 < full.valid.sum() - trimmed.valid.sum() < 0.1 * full.valid.sum()
+    bad = sliscan("scan", folder / "capture.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+              "--trim-edges", "-1", "--npz", "bad.npz", cwd=tmp_path)
+    assert bad.returncode == 2 and not (tmp_path / "bad.npz").exists()
 
 
 def test_scan_stripe_centres_are_the_staircase_the_stripe_lines_remove(plane: tuple[Path, str],

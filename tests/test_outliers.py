@@ -7,7 +7,8 @@ import pytest
 from scipy.special import erf
 
 from sliscan._validate import InputError
-from sliscan.outliers import default_min_region, remove_jump_edges, remove_narrow_runs, remove_speckles, shadow_side
+from sliscan.outliers import (default_min_region, remove_jump_edges, remove_narrow_runs, remove_run_ends,
+                              remove_speckles, shadow_side)
 
 
 def _two_surfaces(rng):
@@ -124,6 +125,52 @@ def test_narrow_runs_along_columns_are_the_transpose(rng):
 def test_narrow_runs_bad_parameters_are_refused(kwargs):
     with pytest.raises(InputError):
         remove_narrow_runs(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)
+
+
+# ------------------------------------------------------------------------------------ run ends
+
+def _distance_to_run_end(proj, valid, max_jump):
+    """Per valid pixel, the pixels to the nearest end of its run along the rows, by walking."""
+    h, w = proj.shape
+    out = np.full((h, w), -1)
+    for y in range(h):
+        for x in range(w):
+            if not valid[y, x]:
+                continue
+            left = right = 0
+            while x - left - 1 >= 0 and valid[y, x - left - 1] and abs(proj[y, x - left - 1] - proj[y, x - left]) <= max_jump:
+                left += 1
+            while x + right + 1 < w and valid[y, x + right + 1] and abs(proj[y, x + right + 1] - proj[y, x + right]) <= max_jump:
+                right += 1
+            out[y, x] = min(left, right)
+    return out
+
+
+@pytest.mark.parametrize("margin", [0, 1, 4, 12])
+def test_run_ends_drop_exactly_the_pixels_within_the_margin(rng, margin):
+    """Against a walk to each run's ends: gaps, jumps (real steps and wrong-code slivers) and
+    the frame's edges all end a run; a run shorter than twice the margin goes entirely."""
+    proj = _edge_with_a_sliver(rng)
+    valid = rng.random(proj.shape) < 0.97
+    valid[:, 60:63] = False
+    keep = remove_run_ends(proj, valid, margin=margin, max_jump=10)
+    distance = _distance_to_run_end(proj, valid, 10)
+    np.testing.assert_array_equal(keep, valid & (distance >= margin))
+    assert not keep[~valid].any()
+
+
+def test_run_ends_along_columns_are_the_transpose(rng):
+    proj = _edge_with_a_sliver(rng)
+    valid = rng.random(proj.shape) < 0.97
+    rows = remove_run_ends(proj, valid, margin=5, max_jump=10)
+    np.testing.assert_array_equal(remove_run_ends(proj.T, valid.T, margin=5, max_jump=10, axis=0), rows.T)
+
+
+@pytest.mark.parametrize("kwargs", [dict(margin=-1, max_jump=10), dict(margin=2, max_jump=0),
+                                    dict(margin=2, max_jump=10, axis=2)])
+def test_run_ends_bad_parameters_are_refused(kwargs):
+    with pytest.raises(InputError):
+        remove_run_ends(np.zeros((4, 4)), np.ones((4, 4), bool), **kwargs)
 
 
 # ------------------------------------------------------------------------------------ jump edges

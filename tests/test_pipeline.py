@@ -9,6 +9,7 @@ from sliscan.evaluate import accuracy, oracle_points, stripe_depth, true_stripes
 from sliscan.patterns import stripe_center
 from sliscan.pipeline import (baseline_angle_deg, baseline_direction, carrier_period_px, device_centre, measurable,
                               stripe_tilt_deg)
+from sliscan.outliers import default_max_jump, remove_run_ends
 from sliscan.reconstruct import MeasurableTest, Triangulator
 from sliscan.sequences import decode_frames, render_frames
 
@@ -319,3 +320,26 @@ def test_narrow_runs_removed_by_the_scanner_are_mostly_wrong_codes(small_rig):
     assert dropped.sum() > 200
     assert (unfiltered.stripe[dropped] != truth[dropped]).mean() > 0.5
     assert (kept.stripe[kept.valid] == truth[kept.valid]).mean() > 0.95
+
+
+def test_trim_edges_trims_the_run_ends_and_most_of_the_error_near_the_edges(small_rig):
+    """``Scanner(trim_edges=2)`` on the thesis pattern's sphere: exactly the full scan's points
+    less those within 2 px of their run's ends along the carriers (the filter comes last, on the
+    same lines), and the RMS falls with them.  Measured on seeds 3-5 of this rig: RMS 0.57-0.66
+    of the full scan's, for 3.2-3.4 points of completeness (bounds 0.8 and 2-5 points)."""
+    spec = patterns.thesis_spec((1024, 768))
+    capture = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(spec),
+                              simulate.Conditions(seed=4))
+    full, trimmed = (Scanner(spec, small_rig.calibration, trim_edges=m).scan(capture.image) for m in (0, 2))
+    expected = remove_run_ends(full.proj_map, full.valid, margin=2, max_jump=default_max_jump(spec, "rows"))
+    np.testing.assert_array_equal(trimmed.valid, expected)
+    np.testing.assert_array_equal(trimmed.proj_map[trimmed.valid], full.proj_map[trimmed.valid])
+    scores = [accuracy(scan, capture.truth, spec, small_rig.calibration) for scan in (full, trimmed)]
+    assert 0.02 < scores[0].completeness - scores[1].completeness < 0.05
+    assert scores[1].rms_mm < 0.8 * scores[0].rms_mm
+
+
+@pytest.mark.parametrize("margin", [-1, 1.5, "2"])
+def test_trim_edges_must_be_whole_pixels(small_rig, margin):
+    with pytest.raises(InputError, match="trim_edges"):
+        Scanner(patterns.thesis_spec((1024, 768)), small_rig.calibration, trim_edges=margin)

@@ -162,12 +162,13 @@ _overwrite_option = click.option("--overwrite", is_flag=True,
 
 
 def _scan_choices_options(command: Callable) -> Callable:
-    """``--decisions``, ``--albedo-steps/--no-albedo-steps`` and ``--stripe-lines/--stripe-centres``,
-    handed to `command` as one ``choices`` `ScanChoices` argument."""
+    """``--decisions``, ``--albedo-steps/--no-albedo-steps``, ``--stripe-lines/--stripe-centres`` and
+    ``--trim-edges``, handed to `command` as one ``choices`` `ScanChoices` argument."""
 
     @functools.wraps(command)
-    def with_choices(*args: Any, decisions: str, albedo_steps: bool, stripe_lines: bool, **kwargs: Any) -> Any:
-        return command(*args, choices=ScanChoices(decisions, albedo_steps, stripe_lines), **kwargs)
+    def with_choices(*args: Any, decisions: str, albedo_steps: bool, stripe_lines: bool, trim_edges: int,
+                     **kwargs: Any) -> Any:
+        return command(*args, choices=ScanChoices(decisions, albedo_steps, stripe_lines, trim_edges), **kwargs)
 
     return _options(
         click.option("--decisions", type=click.Choice(list(DECISIONS)), default="auto", show_default=True,
@@ -182,6 +183,10 @@ def _scan_choices_options(command: Callable) -> Callable:
                           "stripe's located borders (no staircase; with a phase channel, where the two agree), "
                           "or at its stripe's centre (the thesis's staircase; with a phase channel, the phase's "
                           "lines)."),
+        click.option("--trim-edges", type=click.IntRange(min=0), default=0, show_default=True, metavar="PX",
+                     help="Drop the points within PX camera pixels of a depth or shadow edge, a gap or the frame's "
+                          "edge along the carriers, where the demodulation windows reach across it: fewer points, "
+                          "lower RMS (e.g. 10 at 5 MP; docs/accuracy.md)."),
     )(with_choices)
 
 

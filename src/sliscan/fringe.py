@@ -78,7 +78,7 @@ from numpy.typing import NDArray
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
 from sliscan.demodulate import RAMPED_PERIODS, Carriers, Demodulated, along_carriers
-from sliscan.outliers import shadow_side
+from sliscan.outliers import _run_end, inner_pixels, run_bounds, run_lengths, shadow_side
 from sliscan.patterns import code_bits, fringe_line, fringe_phase, phase_shifts, stripe_codes, stripe_of_line
 from sliscan.staircase import slope_along_carriers
 from sliscan.types import PatternSpec
@@ -357,17 +357,6 @@ def phasors(demod: Demodulated, valid: NDArray[np.bool_], levels: ChannelLevels,
             levels.offset.astype(np.float64), mix, shift, np.cos(shifts), np.sin(shifts), weighted)
     over_rows(lambda rows: _phasor_rows(*args, rows, out), out.shape[1])
     return out
-
-
-@numba.njit(cache=True, inline="always")
-def _run_end(coarse: NDArray[np.float32], start: int, max_jump: float) -> int:
-    """End (exclusive) of the run of a line that starts at `start` (a finite `coarse`): the
-    consecutive pixels with a finite `coarse` that changes by at most `max_jump` from each to
-    the next."""
-    end = start + 1
-    while end < coarse.size and np.isfinite(coarse[end]) and abs(coarse[end] - coarse[end - 1]) <= max_jump:
-        end += 1
-    return end
 
 
 @numba.njit(cache=True, inline="always")
@@ -1276,62 +1265,6 @@ def beside_gaps(kept: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
     False
     """
     return kept & within(~kept, rings)
-
-
-@numba.njit(cache=True, nogil=True)
-def _run_bounds_rows(line: NDArray[np.float32], jump: float, rows: NDArray[np.intp], first: NDArray[np.int32],
-                     end: NDArray[np.int32]) -> None:
-    """`run_bounds` on the given `rows`, into `first` and `end`."""
-    width = line.shape[1]
-    for r in rows:
-        start = 0
-        while start < width:
-            if not np.isfinite(line[r, start]):
-                first[r, start] = end[r, start] = start
-                start += 1
-                continue
-            stop = _run_end(line[r], start, jump)
-            first[r, start:stop], end[r, start:stop] = start, stop
-            start = stop
-
-
-def run_bounds(line: NDArray[np.float32], *, jump: float) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-    """The first pixel and one past the last of the run along axis 1 that each finite pixel of
-    `line` ``(H, W)`` lies in, two ``(H, W)`` int32 arrays; a run ends at a NaN or where
-    neighbours differ by more than `jump`; a NaN pixel's run is empty (both its own column).
-
-    >>> first, end = run_bounds(np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32), jump=10.0)
-    >>> first.tolist(), end.tolist()
-    ([[0, 0, 2, 3, 4, 4, 4]], [[2, 2, 2, 4, 7, 7, 7]])
-    """
-    line = np.ascontiguousarray(line, dtype=np.float32)
-    first, end = np.empty(line.shape, np.int32), np.empty(line.shape, np.int32)
-    over_rows(lambda rows: _run_bounds_rows(line, jump, rows, first, end), line.shape[0])
-    return first, end
-
-
-def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.int32]:
-    """Length (pixels) of the run along axis 1 that each finite pixel of `line` ``(H, W)`` lies
-    in (`run_bounds`), ``(H, W)`` int32; 0 on NaN.
-
-    >>> line = np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32)
-    >>> run_lengths(line, jump=10.0).tolist()
-    [[2, 2, 0, 1, 3, 3, 3]]
-    """
-    first, end = run_bounds(line, jump=jump)
-    return end - first
-
-
-def inner_pixels(first: NDArray[np.int32], end: NDArray[np.int32], reach: int) -> NDArray[np.bool_]:
-    """The pixels at least `reach` pixels along axis 1 from either end of their run, ``(H, W)``
-    bool, from `run_bounds`' `first` and `end`.
-
-    >>> line = np.array([[1, 2, 3, 4, 5, np.nan, 7, 8, 9, np.nan, 11, np.nan, np.nan]], np.float32)
-    >>> inner_pixels(*run_bounds(line, jump=10.0), 1).astype(int).tolist()
-    [[0, 1, 1, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]]
-    """
-    x = np.arange(first.shape[1], dtype=np.int32)
-    return (x - first >= reach) & (end - 1 - x >= reach)
 
 
 def phase_envelopes(demod: Demodulated, coarse: NDArray[np.float32], spec: PatternSpec, carriers: Carriers, *,

@@ -28,6 +28,10 @@ surfaces.  `shadow_side` finds them by their light: a pixel at the end of a run 
 darker than halfway between the lit side and the shadow has its centre in the shadow
 (`remove_shadow_sides` for a multi-frame capture; `sliscan.fringe.refine` for the phase
 channel).
+
+Beyond wrong codes, `remove_run_ends` trims a margin off the ends of every run along the
+carriers, where a single-shot pattern's windows reach across an edge: not on by default, a
+trade of completeness for accuracy.
 """
 
 from __future__ import annotations
@@ -207,6 +211,73 @@ def _narrow_runs(proj: NDArray[np.float32], valid: NDArray[np.bool_], max_jump: 
             if has_right and abs(proj[y, right] - proj[y, end]) <= max_jump:
                 continue
             keep[y, start:end + 1] = False
+
+
+@numba.njit(cache=True, inline="always")
+def _run_end(coarse: NDArray[np.float32], start: int, max_jump: float) -> int:
+    """End (exclusive) of the run of a line that starts at `start` (a finite `coarse`): the
+    consecutive pixels with a finite `coarse` that changes by at most `max_jump` from each to
+    the next."""
+    end = start + 1
+    while end < coarse.size and np.isfinite(coarse[end]) and abs(coarse[end] - coarse[end - 1]) <= max_jump:
+        end += 1
+    return end
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_bounds_rows(line: NDArray[np.float32], jump: float, rows: NDArray[np.intp], first: NDArray[np.int32],
+                     end: NDArray[np.int32]) -> None:
+    """`run_bounds` on the given `rows`, into `first` and `end`."""
+    width = line.shape[1]
+    for r in rows:
+        start = 0
+        while start < width:
+            if not np.isfinite(line[r, start]):
+                first[r, start] = end[r, start] = start
+                start += 1
+                continue
+            stop = _run_end(line[r], start, jump)
+            first[r, start:stop], end[r, start:stop] = start, stop
+            start = stop
+
+
+def run_bounds(line: NDArray[np.float32], *, jump: float) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """The first pixel and one past the last of the run along axis 1 that each finite pixel of
+    `line` ``(H, W)`` lies in, two ``(H, W)`` int32 arrays; a run ends at a NaN or where
+    neighbours differ by more than `jump`; a NaN pixel's run is empty (both its own column).
+
+    >>> first, end = run_bounds(np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32), jump=10.0)
+    >>> first.tolist(), end.tolist()
+    ([[0, 0, 2, 3, 4, 4, 4]], [[2, 2, 2, 4, 7, 7, 7]])
+    """
+    line = np.ascontiguousarray(line, dtype=np.float32)
+    first, end = np.empty(line.shape, np.int32), np.empty(line.shape, np.int32)
+    over_rows(lambda rows: _run_bounds_rows(line, jump, rows, first, end), line.shape[0])
+    return first, end
+
+
+def run_lengths(line: NDArray[np.float32], *, jump: float) -> NDArray[np.int32]:
+    """Length (pixels) of the run along axis 1 that each finite pixel of `line` ``(H, W)`` lies
+    in (`run_bounds`), ``(H, W)`` int32; 0 on NaN.
+
+    >>> line = np.array([[1, 2, np.nan, 5, 60, 61, 62]], np.float32)
+    >>> run_lengths(line, jump=10.0).tolist()
+    [[2, 2, 0, 1, 3, 3, 3]]
+    """
+    first, end = run_bounds(line, jump=jump)
+    return end - first
+
+
+def inner_pixels(first: NDArray[np.int32], end: NDArray[np.int32], reach: int) -> NDArray[np.bool_]:
+    """The pixels at least `reach` pixels along axis 1 from either end of their run, ``(H, W)``
+    bool, from `run_bounds`' `first` and `end`.
+
+    >>> line = np.array([[1, 2, 3, 4, 5, np.nan, 7, 8, 9, np.nan, 11, np.nan, np.nan]], np.float32)
+    >>> inner_pixels(*run_bounds(line, jump=10.0), 1).astype(int).tolist()
+    [[0, 1, 1, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0]]
+    """
+    x = np.arange(first.shape[1], dtype=np.int32)
+    return (x - first >= reach) & (end - 1 - x >= reach)
 
 
 def remove_jump_edges(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float,
@@ -393,6 +464,45 @@ def remove_narrow_runs(proj_map: ArrayLike, valid: ArrayLike, *, max_jump: float
     gap = max(int(bridge * window), 1)
     over_rows(lambda rows: _narrow_runs(values, inside, float(max_jump), int(window), gap, rows, keep), proj.shape[0])
     return keep
+
+
+def remove_run_ends(proj_map: ArrayLike, valid: ArrayLike, *, margin: int, max_jump: float,
+                    axis: int = 1) -> NDArray[np.bool_]:
+    """Valid mask without the pixels within `margin` pixels of either end of their run along
+    `axis`: a run of valid pixels ends at an invalid one, a jump of more than `max_jump`
+    (projector lines) or the frame's edge (`run_bounds`).
+
+    A single-shot pattern is demodulated in windows along the carriers, and near a depth or
+    shadow edge every window reaches across it or is clipped by it: the points there carry
+    most of the error left (docs/accuracy.md, "Points near run ends").  Trimming them trades
+    completeness for accuracy, an edge filter as scanners offer one; `margin` 0 keeps all.
+
+    Parameters
+    ----------
+    proj_map, valid, max_jump, axis
+        As for `remove_narrow_runs`.
+    margin : int
+        Camera pixels trimmed from each end of every run, >= 0.
+
+    Returns
+    -------
+    (H, W) bool array
+
+    Examples
+    --------
+    >>> proj = np.array([[10, 11, 12, 13, 14, 15, 90, 91, 92, 93]], np.float32)
+    >>> remove_run_ends(proj, np.ones(proj.shape, bool), margin=1, max_jump=5).astype(int).tolist()
+    [[0, 1, 1, 1, 1, 0, 0, 1, 1, 0]]
+    """
+    proj, mask = _map_and_mask(proj_map, valid)
+    if axis not in (0, 1) or margin < 0 or not max_jump > 0:
+        raise InputError(f"need axis 0 or 1, a margin >= 0 and a positive max_jump, got {axis}, {margin}, {max_jump}")
+    if axis == 0:
+        return remove_run_ends(proj.T, mask.T, margin=margin, max_jump=max_jump).T
+    if margin == 0:
+        return mask.copy()
+    line = np.where(mask, proj, np.nan).astype(np.float32)
+    return mask & inner_pixels(*run_bounds(line, jump=max_jump), margin)
 
 
 @numba.njit(cache=True, nogil=True)
