@@ -78,7 +78,7 @@ from numpy.typing import NDArray
 from sliscan._threads import over_rows
 from sliscan.decode import Decoded
 from sliscan.demodulate import RAMPED_PERIODS, Carriers, Demodulated, along_carriers
-from sliscan.outliers import _run_end, inner_pixels, run_bounds, run_lengths, shadow_side
+from sliscan.outliers import inner_pixels, run_bounds, run_end, run_lengths, shadow_side
 from sliscan.patterns import code_bits, fringe_line, fringe_phase, phase_shifts, stripe_codes, stripe_of_line
 from sliscan.staircase import slope_along_carriers
 from sliscan.types import PatternSpec
@@ -393,7 +393,7 @@ def _segment_box_rows(values: NDArray[np.float32], coarse: NDArray[np.float32], 
                     out[k, r, start] = 0.0
                 start += 1
                 continue
-            end = _run_end(coarse[r], start, max_jump)
+            end = run_end(coarse[r], start, max_jump)
             # the pixels whose box lies inside the run and is not moved at the frame's ends
             inner_lo, inner_hi = start + radius, end - radius
             if start == 0 and end >= clamped + length:
@@ -614,7 +614,7 @@ def _recentre_rows(summed: NDArray[np.float32], coarse: NDArray[np.float32], max
             if not np.isfinite(coarse[r, start]):
                 start += 1
                 continue
-            end = _run_end(coarse[r], start, max_jump)
+            end = run_end(coarse[r], start, max_jump)
             for x in range(start, end):  # the phase's slope (radians per pixel) on either side, if they agree
                 slope[x] = 0.0
                 if summed[2, r, x] <= 0 or abs(summed[3, r, x] / summed[2, r, x] - x) < 0.5:

@@ -214,7 +214,7 @@ def _narrow_runs(proj: NDArray[np.float32], valid: NDArray[np.bool_], max_jump: 
 
 
 @numba.njit(cache=True, inline="always")
-def _run_end(coarse: NDArray[np.float32], start: int, max_jump: float) -> int:
+def run_end(coarse: NDArray[np.float32], start: int, max_jump: float) -> int:
     """End (exclusive) of the run of a line that starts at `start` (a finite `coarse`): the
     consecutive pixels with a finite `coarse` that changes by at most `max_jump` from each to
     the next."""
@@ -236,7 +236,7 @@ def _run_bounds_rows(line: NDArray[np.float32], jump: float, rows: NDArray[np.in
                 first[r, start] = end[r, start] = start
                 start += 1
                 continue
-            stop = _run_end(line[r], start, jump)
+            stop = run_end(line[r], start, jump)
             first[r, start:stop], end[r, start:stop] = start, stop
             start = stop
 
