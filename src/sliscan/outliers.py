@@ -499,8 +499,6 @@ def remove_run_ends(proj_map: ArrayLike, valid: ArrayLike, *, margin: int, max_j
         raise InputError(f"need axis 0 or 1, a margin >= 0 and a positive max_jump, got {axis}, {margin}, {max_jump}")
     if axis == 0:
         return remove_run_ends(proj.T, mask.T, margin=margin, max_jump=max_jump).T
-    if margin == 0:
-        return mask.copy()
     line = np.where(mask, proj, np.nan).astype(np.float32)
     return mask & inner_pixels(*run_bounds(line, jump=max_jump), margin)
 

@@ -661,7 +661,7 @@ class Scanner:
             if self.remove_shadow_sides and light is not None:
                 valid = remove_shadow_sides(proj_map, valid, light, max_jump=max_jump)
         if self.trim_edges:
-            valid = remove_run_ends(proj_map, valid, margin=int(self.trim_edges), max_jump=max_jump,
+            valid = remove_run_ends(proj_map, valid, margin=self.trim_edges, max_jump=max_jump,
                                     axis=1 if direction == "rows" else 0)
         return valid
 
