@@ -139,6 +139,11 @@ DECODER_VARIANTS = {
     "sliscan 4-bit (no typical slope)": ("sliscan 4-bit", dict(typical_slope=False)),
     "thesis 4-bit (no lines beside)": ("thesis 4-bit", dict(lines_beside=False)),
     "sliscan 4-bit (no lines beside)": ("sliscan 4-bit", dict(lines_beside=False)),
+    # the albedo steps all sharp (`Scanner.albedo` "sharp-steps"), as until the forty-fifth
+    # session: the flat ones are blurred by default for the stripe patterns (docs/accuracy.md,
+    # "Soft albedo edges")
+    "thesis 4-bit (sharp albedo steps)": ("thesis 4-bit", dict(albedo="sharp-steps")),
+    "sliscan 4-bit (sharp albedo steps)": ("sliscan 4-bit", dict(albedo="sharp-steps")),
     # not decoders but the edge trim (`Scanner.trim_edges`), a trade of points for RMS; 10 px
     # is meant for the 5 MP camera (about a ninth of its window): docs/accuracy.md
     "thesis 4-bit (edges trimmed 10 px)": ("thesis 4-bit", dict(trim_edges=10)),

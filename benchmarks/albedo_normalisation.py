@@ -36,12 +36,14 @@ from accuracy import conditions, render_cached
 
 SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
 #: variant -> (estimate, options of `normalise_albedo`); "none": no normalisation; "steps" is
-#: the default of `demodulate_window`; "steps-one-way": its lines read left to right only (the
-#: detector until the fourteenth session); "steps-soft": its steps blurred along the lines (a
-#: Gaussian of `SOFT_SIGMA` px, the camera's blur of a sharp edge); the others: `_truth_gain`.
+#: the default of `demodulate_window` (its flat steps blurred, since the forty-fifth session);
+#: "sharp-steps": none blurred; "steps-one-way": its lines read left to right only (the
+#: detector until the fourteenth session); "steps-soft": every sharp step blurred along the
+#: lines (a Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the others: `_truth_gain`.
 VARIANTS = {
     "none": (None, {}),
     "steps": ("steps", {}),
+    "sharp-steps": ("sharp-steps", {}),
     "steps-one-way": ("steps", dict(both_ways=False)),
     "steps-0.7": ("steps", dict(threshold=0.7)),
     "steps-soft": ("steps-soft", {}),
@@ -89,11 +91,12 @@ class _Scanner(Scanner):
         if self._estimate is None:
             return demodulate_window(img, carriers, albedo=None), carriers
         if self._estimate.startswith("oracle"):
-            steps = normalise_albedo(img, carriers)[1] if self._estimate == "oracle-found" else None
+            steps = normalise_albedo(img, carriers, estimate="sharp-steps")[1] if self._estimate == "oracle-found" else None
             gain = _truth_gain(self._estimate, self._truth, steps)
             normalised = img / gain
         elif self._estimate == "steps-soft":
-            gain = scipy.ndimage.gaussian_filter1d(normalise_albedo(img, carriers)[1], SOFT_SIGMA, axis=1)
+            gain = scipy.ndimage.gaussian_filter1d(normalise_albedo(img, carriers, estimate="sharp-steps")[1], SOFT_SIGMA,
+                                                   axis=1)
             normalised = img / gain
         else:
             normalised, gain = normalise_albedo(img, carriers, estimate=self._estimate, **self._options)

@@ -104,7 +104,7 @@ def exact_envelopes(image: np.ndarray, demod: Demodulated, carriers: Carriers, c
     every carrier alike, ``rho`` the fitted ramp over the fitted DC: each carrier's ramp
     ``rho t c_m`` projects onto the others' coefficients through a known matrix, which two
     fixed-point rounds take out."""
-    normalised, gain = normalise_albedo(image, carriers)
+    normalised, gain = normalise_albedo(image, carriers, estimate="sharp-steps")  # as the phase pattern's demodulation
     lines = normalised.astype(np.float64)
     height, width = lines.shape
     omegas = 2 * np.pi * carriers.line_frequencies(slice(0, height))

@@ -203,14 +203,17 @@ def test_lines_beside_lower_a_stripe_scans_rms_and_change_nothing_else(small_rig
     moved = centres.stripe[both] != beside.stripe[both]
     assert moved.mean() < 1e-3 and np.all(np.abs(centres.stripe[both][moved] - beside.stripe[both][moved]) == 1)
     changed = both & (centres.proj_map != beside.proj_map) & (centres.stripe == beside.stripe)
-    assert changed.sum() > 3000  # 4800-6000 on seeds 3-5: the sphere's sides, the wall beside its shadow
-    # two thirds of them were their stripe's centre (68 % on seeds 3-5); the others moved where
-    # the centred windows' lines now agree or not (`prefer_centred`; median 0.75-0.8 lines)
+    assert changed.sum() > 3000  # 4250-5200 on seeds 3-5: the sphere's sides, the wall beside its shadow
+    # most of them were their stripe's centre (83-86 % on seeds 3-5; 68 % with sharp albedo
+    # steps); the others moved where the centred windows' lines now agree or not
+    # (`prefer_centred`; median 0.75-0.8 lines)
     was_centre = centres.proj_map[changed] == patterns.stripe_center(centres.stripe[changed], spec)
     assert was_centre.mean() > 0.6
-    # measured on seeds 3-5 of this rig: RMS 7.5-10.7 % lower
+    # measured on seeds 3-5 of this rig: RMS 4.9-7.1 % lower (7.5-10.7 % with sharp albedo
+    # steps, before the forty-fifth session blurred the checker's edges: its scans' RMS 15.9 /
+    # 15.0 / 14.0 mm without lines beside, against 15.7 / 14.7 / 14.8)
     rms = [accuracy(scan, capture.truth, spec, small_rig.calibration).rms_mm for scan in scans]
-    assert rms[1] < 0.95 * rms[0]
+    assert rms[1] < 0.97 * rms[0]
 
 
 def test_the_typical_slope_replaces_stripe_centres_and_lowers_a_sphere_scans_rms(small_rig):

@@ -82,8 +82,9 @@ REACH = 1.5
 #: `albedo_estimate` options of `normalise_lines` for the ``"steps"`` estimate: each line read
 #: left to right only, half the detector's cost; on the 5 MP captures of the accuracy
 #: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (docs/speed.md,
-#: twentieth session).
-STEPS_OPTIONS: dict[str, bool] = {"both_ways": False}
+#: twentieth session); every step sharp (the window path's soft edges, `STEP_SPREAD`, are not
+#: measured on this path).
+STEPS_OPTIONS: dict[str, bool | float] = {"both_ways": False, "spread": 0.0}
 #: The flat field's floor in `normalise_lines`, relative to the capture's bright level (its
 #: 99th percentile): darker light (shadow, black surfaces) is divided by the floor instead,
 #: so its noise is not raised to the lit level.  A floor of 0.05 (a tenth of the bright DC)
@@ -297,7 +298,7 @@ def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
     albedo = np.ascontiguousarray(albedo_estimate(img, carriers, estimate=estimate,
-                                                  **(STEPS_OPTIONS if estimate == "steps" else {})))
+                                                  **(STEPS_OPTIONS if estimate in ("steps", "sharp-steps") else {})))
     windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (img.shape[0],)), dtype=np.intp)
     scale = max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty_like(img)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 
@@ -1044,9 +1045,10 @@ def along_scale(image: NDArray[np.floating], carriers: Carriers, error: NDArray[
                                                                             axis=-1)))
 
 
-#: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`;
-#: the others were measured worse, see ``benchmarks/albedo_normalisation.py``).
-ALBEDO_ESTIMATES = ("steps", "closing", "envelopes", "guided", "notch-log", "notch")
+#: Albedo estimates of `normalise_albedo` (``"steps"`` is the default of `demodulate_window`,
+#: ``"sharp-steps"`` the same steps with none blurred, the default with a phase channel; the
+#: others were measured worse, see ``benchmarks/albedo_normalisation.py``).
+ALBEDO_ESTIMATES = ("steps", "sharp-steps", "closing", "envelopes", "guided", "notch-log", "notch")
 #: `_albedo_steps` defaults.  A step is a reflectance ratio of at least e ** `STEP_THRESHOLD`
 #: (log units: 2.7; a 0.25/0.9 checker is 1.28).  Candidates are where the lag-one-window log
 #: ratio of the line changes by at least `STEP_FIND` of that across a short box on either side
@@ -1071,6 +1073,21 @@ STEP_ECHO = 0.5
 STEP_CONSTANCY = 0.4
 STEP_MARGIN = 3
 STEP_SPAN = 6
+#: The camera blurs a reflectance edge (its optics and its pixels' aperture), so the capture
+#: changes over a pixel or two where the albedo steps; divided by a sharp step, it keeps a
+#: spike of the wrong level on either side, which no window fit explains and whose windows are
+#: then lost.  So each step whose lag ratio is flat over its span (weighted spread at most
+#: `STEP_FLAT` of its height: the same reflectance ratio under every part of the pattern, an
+#: albedo edge) is rendered as an edge blurred by a Gaussian of `STEP_SPREAD` camera pixels, in
+#: linear albedo, centred where the linear edge is half-way (`_soften_steps`); the others
+#: (where the ratio swings with the pattern: a shadow or depth edge, a change of code) stay
+#: sharp.
+#: Measured on the virtual rig (docs/accuracy.md, "Soft albedo edges"): on the checker
+#: 1.3-1.5 points more completeness for sliscan's pattern at 1296x972 (up to 3.2 on the
+#: cylinder), nothing on a smooth albedo; the sharpness of the blur matters little (0.7-1.4 px
+#: alike).  The phase channel keeps the sharp steps (`demodulate`): its fringe lost there.
+STEP_SPREAD = 1.0
+STEP_FLAT = 0.15
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -1126,10 +1143,11 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 @numba.njit(cache=True, nogil=True)
 def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float,
-                kept: NDArray[np.intp], heights: NDArray[np.float64]) -> int:
+                kept: NDArray[np.intp], heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
-    `box` px): their pixels into `kept` (ascending), log heights into `heights`; returns how
-    many."""
+    `box` px): their pixels into `kept` (ascending), log heights into `heights`, whether the
+    lag ratio is flat over the span the height was measured on into `flat` (`STEP_FLAT`);
+    returns how many."""
     w = line.size
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
     logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
@@ -1174,26 +1192,46 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
             steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
             if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
                 kept[n_kept], heights[n_kept] = x, height
+                flat[n_kept] = _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height)
                 n_kept += 1
     return n_kept
 
 
 @numba.njit(cache=True, nogil=True)
-def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], n_ahead: int, back: NDArray[np.intp],
-                   back_h: NDArray[np.float64], n_back: int, box: int, out: NDArray[np.float32]) -> None:
+def _ratio_spread(line: NDArray[np.float32], logs: NDArray[np.float64], t: int, floor: float, lo: int,
+                  hi: int) -> float:
+    """Weighted standard deviation of the lag-one-window log ratio over pixels ``lo .. hi - 1``
+    (`line` and its floored logs `logs`; weights as in `_line_steps`)."""
+    total = first = second = 0.0
+    for u in range(lo, hi):
+        wt = max(min(line[u], line[u - t]), floor)
+        g = logs[u] - logs[u - t]
+        total += wt
+        first += wt * g
+        second += wt * g * g
+    mean = first / max(total, 1e-12)
+    return math.sqrt(max(second / max(total, 1e-12) - mean * mean, 0.0))
+
+
+@numba.njit(cache=True, nogil=True)
+def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], ahead_flat: NDArray[np.bool_],
+                   n_ahead: int, back: NDArray[np.intp], back_h: NDArray[np.float64], back_flat: NDArray[np.bool_],
+                   n_back: int, box: int, spread: float, out: NDArray[np.float32]) -> None:
     """The relative albedo of one line ``(W,)`` into `out`, from the steps found reading it
-    left to right (`ahead`, ascending pixels, log heights `ahead_h`) and right to left (`back`:
-    pixels of the reversed line, ascending there, with their heights there): every step found
-    either way, the two heights averaged where both found one within `box` px."""
+    left to right (`ahead`, ascending pixels, log heights `ahead_h`, flat ratios `ahead_flat`)
+    and right to left (`back`: pixels of the reversed line, ascending there, with their heights
+    and flatness there): every step found either way, the two heights averaged where both found
+    one within `box` px, flat if either way's ratio is; the flat ones blurred (`_soften_steps`)."""
     w = out.size
     delta = np.zeros(w)
+    flat = np.zeros(w, np.bool_)
     used = np.zeros(n_back, np.bool_)
     k = n_back - 1  # the reversed line's steps from the right end: ascending pixels here
     for i in range(n_ahead):
         x = ahead[i]
         while k >= 0 and w - back[k] < x - box:
             k -= 1
-        nearest, height = -1, ahead_h[i]
+        nearest, height, is_flat = -1, ahead_h[i], ahead_flat[i]
         for m in range(k, -1, -1):
             at = w - back[m]
             if at > x + box:
@@ -1203,43 +1241,91 @@ def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], n_ahea
         if nearest >= 0:
             used[nearest] = True
             height = 0.5 * (height - back_h[nearest])
+            is_flat = is_flat or back_flat[nearest]
         delta[x] += height
+        flat[x] |= is_flat
     for m in range(n_back):
         if not used[m]:  # a step up read right to left is a step down read left to right
             delta[w - back[m]] -= back_h[m]
+            flat[w - back[m]] |= back_flat[m]
     total, level = 0.0, 1.0
     for x in range(w):
         if delta[x] != 0.0:
             total += delta[x]
             level = np.exp(total)
         out[x] = level
+    if spread > 0:
+        _soften_steps(delta, flat, spread, out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _soften_steps(delta: NDArray[np.float64], flat: NDArray[np.bool_], spread: float,
+                  out: NDArray[np.float32]) -> None:
+    """Blur the steps of one line's relative albedo `out` ``(W,)`` (log heights `delta` at their
+    pixels) that are `flat` by a Gaussian of `spread` px: each such step becomes ``a0 + (a1 -
+    a0) Phi((u - e) / spread)`` in linear albedo (its levels ``a0`` before and ``a1`` after);
+    steps closer than the blur's reach add up, as a blur of their sum would.
+
+    The detector finds a step where the LOG of the blurred capture is half-way between the two
+    levels, between its pixel ``x`` and ``x - 1``; the blurred linear edge is half-way farther
+    toward the bright side (`_bright_side_shift`), so ``e = x - 1/2`` plus that shift."""
+    w = out.size
+    reach = int(math.ceil(4 * spread)) + 1
+    scale = 1.0 / (spread * math.sqrt(2.0))
+    total = 0.0
+    for x in range(w):
+        if delta[x] == 0.0:
+            continue
+        before, total = math.exp(total), total + delta[x]
+        if flat[x]:
+            rise = math.exp(total) - before
+            centre = x - 0.5 + math.copysign(_bright_side_shift(abs(delta[x]), spread), delta[x])
+            for u in range(max(x - reach, 0), min(x + reach, w)):
+                sharp = 1.0 if u >= x else 0.0
+                out[u] += rise * (0.5 * (1.0 + math.erf((u - centre) * scale)) - sharp)
+
+
+@numba.njit(cache=True, nogil=True)
+def _bright_side_shift(height: float, spread: float) -> float:
+    """How far (px) the middle of a linear edge of log height `height` blurred by a Gaussian of
+    `spread` px lies from the middle of its log, toward the bright side: the log is half-way
+    where the linear share of the rise is ``1 / (sqrt(r) + 1)`` (``r = exp(height)``), which is
+    ``Phi(-z)`` at ``z`` blurs from the linear middle (0.40 px for a 0.25 / 0.9 edge at 1 px).
+    ``z`` by Newton's method on ``Phi(z) = 1 - 1 / (sqrt(r) + 1)``, from 0 (monotone there)."""
+    share = 1.0 - 1.0 / (math.exp(0.5 * height) + 1.0)
+    z = 0.0
+    for _ in range(12):
+        z -= (0.5 * (1.0 + math.erf(z / math.sqrt(2.0))) - share) / (math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi))
+    return spread * z
 
 
 @numba.njit(cache=True, nogil=True)
 def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
-                       both_ways: bool, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+                       both_ways: bool, spread: float, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
     """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
     per row."""
     w = img.shape[1]
     reversed_line = np.empty(w, np.float32)
     ahead, back = np.empty(w, np.intp), np.empty(w, np.intp)
     ahead_h, back_h = np.empty(w), np.empty(w)
+    ahead_flat, back_flat = np.empty(w, np.bool_), np.empty(w, np.bool_)
     for r in rows:
         t = windows[r]
         if 3 * t >= w:
             out[r] = 1.0
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        n_ahead, n_back = _line_steps(img[r], t, box, floor, threshold, ahead, ahead_h), 0
+        n_ahead, n_back = _line_steps(img[r], t, box, floor, threshold, ahead, ahead_h, ahead_flat), 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, back, back_h)
-        _two_way_level(ahead, ahead_h, n_ahead, back, back_h, n_back, box, out[r])
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, back, back_h, back_flat)
+        _two_way_level(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, spread, out[r])
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
-                  threshold: float = STEP_THRESHOLD, both_ways: bool = True) -> NDArray[np.float32]:
+                  threshold: float = STEP_THRESHOLD, both_ways: bool = True,
+                  spread: float = STEP_SPREAD) -> NDArray[np.float32]:
     """Relative albedo made of the sharp steps found along each line (1 left of the first).
 
     Within one code the pattern repeats every window ``T`` along the line, so where the albedo
@@ -1261,14 +1347,18 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     one within a box its height is the mean of the two (`_two_way_level`; `both_ways` False:
     left to right only, as until the fourteenth session).  The running sum of
     the heights along the line is the log albedo; a smooth albedo changes ``g`` too slowly to
-    count and is left to the flat field.  Lines in threads (a compiled kernel,
-    `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is tested.
+    count and is left to the flat field.  The steps over which ``g`` is flat (an albedo edge)
+    are blurred by a Gaussian of `spread` camera pixels, as the camera blurs them (`STEP_SPREAD`;
+    0: every step sharp, as until the forty-fifth session).  Lines in threads (a compiled
+    kernel, `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is
+    tested.
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty(img.shape, dtype=np.float32)
-    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, both_ways, rows, out), img.shape[0])
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, both_ways, float(spread), rows, out),
+              img.shape[0])
     return out
 
 
@@ -1299,9 +1389,11 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
 
     Estimates (`estimate`; keyword `options` in brackets):
 
-    * ``"steps"`` (threshold, both_ways; see `_albedo_steps`): only the sharp steps, found where the
-      capture stops repeating itself one carrier period later; between them 1, so a smooth
-      albedo is left to the flat field.  The only one that helped (issue 8).
+    * ``"steps"`` (threshold, both_ways, spread; see `_albedo_steps`): only the sharp steps, found
+      where the capture stops repeating itself one carrier period later; between them 1, so a
+      smooth albedo is left to the flat field; a step over which that repetition holds (an
+      albedo edge) blurred as the camera blurs it.  The only one that helped (issue 8).
+    * ``"sharp-steps"``: the same steps, none blurred (``spread=0``).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
       pattern's peaks where the albedo varies within a period: it loses 7 points of stripe
@@ -1317,15 +1409,15 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
     Returns
     -------
     (H, W) float32 array
-        Relative for ``"steps"``; floored at 1e-4 of the image's maximum for the others.
+        Relative for the steps; floored at 1e-4 of the image's maximum for the others.
     """
     img = np.asarray(image, dtype=np.float32)
     if estimate not in ALBEDO_ESTIMATES:
         raise InputError(f"estimate must be one of {', '.join(ALBEDO_ESTIMATES)}, got {estimate!r}")
     h, w = img.shape
     windows = np.broadcast_to(carriers.line_windows(), (h,))
-    if estimate == "steps":
-        return _albedo_steps(img, windows, **options)
+    if estimate in ("steps", "sharp-steps"):
+        return _albedo_steps(img, windows, **(options | ({"spread": 0.0} if estimate == "sharp-steps" else {})))
     floor = np.float32(max(float(img.max()), 1e-6) * 1e-4)
     length = max(3, int(np.ceil(options.get("size", 1.0 if estimate == "guided" else 1.25) * float(windows.max()))))
     if estimate in ("closing", "envelopes"):
@@ -1480,7 +1572,8 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
         Reuse carriers found earlier (e.g. for a video of the same rig).
     albedo : str or None
         ``"window"`` only: the albedo estimate the capture is divided by first
-        (`normalise_albedo`), None for none.
+        (`normalise_albedo`), None for none; ``"steps"`` is ``"sharp-steps"`` for a pattern
+        with a phase channel (its fringe's phase lost where the steps were blurred).
     centred : bool
         ``"window"`` only: also every pixel's centred window's envelopes (`Demodulated.centred`).
 
@@ -1496,6 +1589,8 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     view = along_carriers(img, spec)
     found = carriers if carriers is not None else detect_carriers(img, spec)
     ramped = range(spec.bits, spec.bits + len(spec.phase_carriers))  # the phase channel's carriers
+    if albedo == "steps" and spec.phase_carriers:
+        albedo = "sharp-steps"  # blurred steps cost the fringe phase (docs/accuracy.md, "Soft albedo edges")
     out = (demodulate_window(view, found, albedo=albedo, ramped=ramped, centred=centred) if method == "window"
            else demodulate_bandpass(view, found))
     if spec.orientation == "columns":

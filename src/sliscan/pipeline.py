@@ -411,9 +411,12 @@ class Scanner:
     albedo : str or None
         Methods ``window`` and ``baseband``: the albedo estimate the capture is divided by
         before demodulation (`sliscan.demodulate.normalise_albedo`; ``"steps"``, the default,
-        the sharp reflectance steps, which no demodulation window can fit); None for none (the
-        fastest baseband scan, for surfaces without sharp texture: docs/speed.md).  The
-        baseband path divides by each line's flat field as well (`sliscan.baseband.normalise_lines`).
+        the sharp reflectance steps, which no demodulation window can fit, each albedo edge
+        among them blurred as the camera blurs it on the window path of a stripe pattern;
+        ``"sharp-steps"`` none blurred, as with a phase channel and on the baseband path:
+        docs/accuracy.md, "Soft albedo edges"); None for none (the fastest baseband scan, for
+        surfaces without sharp texture: docs/speed.md).  The baseband path divides by each
+        line's flat field as well (`sliscan.baseband.normalise_lines`).
 
     Examples
     --------
