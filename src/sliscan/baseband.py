@@ -82,8 +82,8 @@ REACH = 1.5
 #: `albedo_estimate` options of `normalise_lines` for the ``"steps"`` estimate: each line read
 #: left to right only, half the detector's cost; on the 5 MP captures of the accuracy
 #: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (docs/speed.md,
-#: twentieth session); every step sharp (the window path's soft edges, `STEP_SPREAD`, are not
-#: measured on this path).
+#: twentieth session); every step sharp (the window path's soft edges, `STEP_SPREAD`, gained
+#: 0-0.3 points of completeness here on the 5 MP checker: docs/accuracy.md, "Soft albedo edges").
 STEPS_OPTIONS: dict[str, bool | float] = {"both_ways": False, "spread": 0.0}
 #: The flat field's floor in `normalise_lines`, relative to the capture's bright level (its
 #: 99th percentile): darker light (shadow, black surfaces) is divided by the floor instead,
