@@ -1082,10 +1082,11 @@ STEP_SPAN = 6
 #: linear albedo, centred where the linear edge is half-way (`_soften_steps`); the others
 #: (where the ratio swings with the pattern: a shadow or depth edge, a change of code) stay
 #: sharp.
-#: Measured on the virtual rig (docs/accuracy.md, "Soft albedo edges"): on the checker
-#: 1.3-1.5 points more completeness for sliscan's pattern at 1296x972 (up to 3.2 on the
-#: cylinder), nothing on a smooth albedo; the sharpness of the blur matters little (0.7-1.4 px
-#: alike).  The phase channel keeps the sharp steps (`demodulate`): its fringe lost there.
+#: Measured on the virtual rig (docs/accuracy.md, "Soft albedo edges"): on the checker 1.7
+#: (sliscan's pattern) and 2.3 (the thesis's) points more completeness at 1296x972 (up to 3.2
+#: and 4.7 on the cylinder), 0.1-1.9 at 5 MP, nothing on a smooth albedo; a blur of 0.7 px
+#: gives 85 % of it.  The phase channel keeps the sharp steps (`demodulate`): its fringe's
+#: precision lost there.
 STEP_SPREAD = 1.0
 STEP_FLAT = 0.15
 
