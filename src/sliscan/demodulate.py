@@ -1143,12 +1143,12 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 
 @numba.njit(cache=True, nogil=True)
-def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float,
+def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, soft: bool,
                 kept: NDArray[np.intp], heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
-    `box` px): their pixels into `kept` (ascending), log heights into `heights`, whether the
-    lag ratio is flat over the span the height was measured on into `flat` (`STEP_FLAT`);
-    returns how many."""
+    `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
+    `soft` whether the lag ratio is flat over the span the height was measured on into `flat`
+    (`STEP_FLAT`; False for all without); returns how many."""
     w = line.size
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
     logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
@@ -1193,7 +1193,7 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
             steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
             if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
                 kept[n_kept], heights[n_kept] = x, height
-                flat[n_kept] = _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height)
+                flat[n_kept] = soft and _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height)
                 n_kept += 1
     return n_kept
 
@@ -1316,11 +1316,11 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
             out[r] = 1.0
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        n_ahead, n_back = _line_steps(img[r], t, box, floor, threshold, ahead, ahead_h, ahead_flat), 0
+        n_ahead, n_back = _line_steps(img[r], t, box, floor, threshold, spread > 0, ahead, ahead_h, ahead_flat), 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, back, back_h, back_flat)
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, spread > 0, back, back_h, back_flat)
         _two_way_level(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, spread, out[r])
 
 
