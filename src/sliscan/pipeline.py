@@ -635,7 +635,7 @@ class Scanner:
         that jump away from their neighbours; for multi-frame kinds, with `remove_jump_edges`
         the pixels beside a jump or a gap to another surface, with `remove_shadow_sides` and
         `light` (each pixel's light) those on a shadow's side of a light edge; with `trim_edges`
-        the points that near their run's ends.  The points the filters drop are set to NaN by
+        the points near their run's ends.  The points the filters drop are set to NaN by
         `_finish`."""
         points, valid = self.triangulator(direction).measure(proj_map, valid, self.measurable_test(direction),
                                                              other=other)
