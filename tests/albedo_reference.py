@@ -7,7 +7,7 @@ import scipy.ndimage
 from numpy.typing import NDArray
 
 from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONSTANCY, STEP_ECHO, STEP_FIND, STEP_HEIGHT,
-                                STEP_MARGIN, STEP_MIN_BOX, STEP_SPAN, STEP_THRESHOLD)
+                                STEP_MARGIN, STEP_MIN_BOX, STEP_SHARPNESS, STEP_SPAN, STEP_THRESHOLD)
 
 
 def _ratio_means(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: NDArray[np.intp],
@@ -66,7 +66,14 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
         evidence, one_sided = _evidence(change, usable, t)
         strength = np.abs(evidence)
         largest = scipy.ndimage.maximum_filter1d(strength, size=2 * box + 1, axis=1, mode="constant")
-        candidate = (strength >= STEP_FIND * threshold) & (strength >= largest)
+        # sharp: the change across boxes of a third of `box` (at its view: here, else a window on)
+        inner = max(2, box // 3)
+        at = np.where(usable, x, np.minimum(x + t, w - 1))
+        short = (_ratio_means(cum_g, cum_w, at, np.minimum(at + inner, w))
+                 - _ratio_means(cum_g, cum_w, np.maximum(at - inner, 0), at))
+        full = np.take_along_axis(change, at, axis=1)
+        sharp = (short * full > 0) & (np.abs(short) >= STEP_SHARPNESS * np.abs(full))
+        candidate = (strength >= STEP_FIND * threshold) & (strength >= largest) & sharp
         # one per box: a candidate within `box` after another one is a tie, and the first wins
         count = np.hstack([np.zeros((rows.size, box + 1), np.intp), np.cumsum(candidate, axis=1)])
         earlier = count[:, box:box + w] - count[:, :w]  # candidates in x - box .. x - 1

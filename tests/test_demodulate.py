@@ -381,6 +381,47 @@ def test_albedo_steps_keep_both_edges_of_a_strip_narrower_than_a_window():
     np.testing.assert_allclose([abs(h) for _, _, h in found], np.log(0.9 / 0.25), atol=0.03)
 
 
+def test_albedo_steps_find_the_edges_of_a_lower_contrast_checker():
+    """A square of 0.3 under a checker's 0.8 (a log step of 0.98, under the threshold of 1.0
+    until the forty-seventh session, when such a checker was the worst decoded of all) 1.5
+    windows wide: both edges found, at their pixels, with their heights; a step of a third
+    of that (0.6 / 0.8: a reflectance ratio of 1.33) is left to the flat field."""
+    image, carriers = synthetic_lines(amplitudes=(0.1, 0.05, 0.08, 0.1), slope=0, dc=0.35, noise=0.003,
+                                      rng=np.random.default_rng(6))
+    x = np.arange(600)
+    albedo = np.where((x >= 250) & (x < 325), 0.3, 0.8).astype(np.float32)
+    found = _steps_found(normalise_albedo(image * albedo, carriers, estimate="sharp-steps")[1])
+    assert [(r, at) for r, at, _ in found] == [(r, at) for r in range(4) for at in (250, 325)]
+    np.testing.assert_allclose([abs(h) for _, _, h in found], np.log(0.8 / 0.3), atol=0.03)
+    faint = np.where((x >= 250) & (x < 325), 0.6, 0.8).astype(np.float32)
+    assert np.all(normalise_albedo(image * faint, carriers)[1] == 1)
+
+
+def test_albedo_steps_must_be_as_sharp_as_the_optics_blur_them():
+    """`STEP_SHARPNESS`: a 0.3 / 0.8 edge blurred by a Gaussian of 1.5 px is found on every line
+    (of 20; 2 px: 37 of 40 edges, 2.5 px: 5, measured), but the same rise as a linear ramp over
+    a fifth of a window (10 px: a steep smooth albedo) on none, which without the test is found
+    on every line; a ramp of 1.3 over 10 px, found with the threshold of 1.0 before the
+    forty-seventh session, neither."""
+    image, _ = synthetic_lines(amplitudes=(0.1, 0.05, 0.08, 0.1), slope=0, dc=0.35, noise=0.003,
+                               rng=np.random.default_rng(8), lines=20)
+    x, windows = np.arange(600), np.full(20, 50)
+
+    def lines_with_steps(albedo, **options):
+        estimate = _albedo_steps(image * albedo.astype(np.float32), windows, spread=0, **options)
+        return int(np.any(np.diff(np.log(estimate), axis=1) != 0, axis=1).sum())
+
+    edge = scipy.ndimage.gaussian_filter1d(np.where((x >= 300) & (x < 375), 0.3, 0.8), 1.5)
+    assert lines_with_steps(edge) == 20
+
+    def ramp(height):
+        return np.exp(height * np.clip((x - 300) / 10, 0, 1) - height * np.clip((x - 380) / 10, 0, 1))
+
+    assert lines_with_steps(ramp(np.log(0.8 / 0.3))) == 0
+    assert lines_with_steps(ramp(np.log(0.8 / 0.3)), sharpness=0.0) == 20
+    assert lines_with_steps(ramp(1.3)) == 0
+
+
 def test_albedo_steps_ignore_a_depth_edge_and_a_steps_echo_at_a_line_end():
     """The pattern shifted by 0.3 windows (a depth edge: the ratio one window back oscillates
     with the pattern) is no step; a step 20 px before the last window is found once, not again
@@ -491,9 +532,11 @@ def test_albedo_steps_read_both_ways_find_more_true_edges():
     """A step missed along a line spoils the heights of the next ones within a window; read
     the other way, the heights are measured on the other side.  On the checkered sphere the
     two ways find more of the true edges (steps of the rendered albedo by more than a factor
-    1.65) than the left-to-right reading alone, within 2 px: measured 69.6 -> 71.9 % (seed 3:
-    69.5 -> 71.8 %; 800x600: 74.1 -> 76.1 %), with 1.7 % of the steps more than 2 px from a
-    true edge (one way: 1.1 %).  Margins: 1.5 points gained, 2.5 % stray."""
+    1.65) than the left-to-right reading alone, within 2 px: measured 74.4 -> 76.8 % (with the
+    threshold of 1.0 until the forty-seventh session 69.6 -> 71.9 %; seed 3: 69.5 -> 71.8 %;
+    800x600: 74.1 -> 76.1 %), with 3.7 % of the steps more than 2 px from a true edge (one
+    way: 2.9 %; 1.7 and 1.1 % with the threshold of 1.0).  Margins: 1.5 points gained, 4.5 %
+    stray."""
     capture, img, windows = _checkered_sphere_640()
     h, w = img.shape
 
@@ -513,7 +556,7 @@ def test_albedo_steps_read_both_ways_find_more_true_edges():
 
     (found_one, _), (found_two, stray_two) = found_and_stray(one_way), found_and_stray(two_ways)
     assert found_two >= found_one + 0.015
-    assert stray_two <= 0.025
+    assert stray_two <= 0.045
 
 
 def test_the_scale_map_is_the_mean_of_the_measurements_in_its_box():

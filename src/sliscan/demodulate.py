@@ -1050,20 +1050,34 @@ def along_scale(image: NDArray[np.floating], carriers: Carriers, error: NDArray[
 #: others were measured worse, see ``benchmarks/albedo_normalisation.py``).
 ALBEDO_ESTIMATES = ("steps", "sharp-steps", "closing", "envelopes", "guided", "notch-log", "notch")
 #: `_albedo_steps` defaults.  A step is a reflectance ratio of at least e ** `STEP_THRESHOLD`
-#: (log units: 2.7; a 0.25/0.9 checker is 1.28).  Candidates are where the lag-one-window log
-#: ratio of the line changes by at least `STEP_FIND` of that across a short box on either side
-#: (`STEP_BOX` of a window, at least `STEP_MIN_BOX` pixels; blur spreads the change, so less
-#: than the threshold), the largest within a box, and the two views of the change (at the
+#: (log units: 2.2; a 0.25/0.9 checker is 1.28, a 0.3/0.8 one 0.98, a 0.4/0.9 one 0.81).
+#: Candidates are where the lag-one-window log ratio of the line changes by at least
+#: `STEP_FIND` of that across a short box on either side (`STEP_BOX` of a window, at least
+#: `STEP_MIN_BOX` pixels; blur spreads the change, so less than the threshold), sharply
+#: (`STEP_SHARPNESS`), the largest within a box, and the two views of the change (at the
 #: step, and one window later where the ratio changes back) agreeing within `STEP_AGREEMENT`.
 #: The height is the ratio's weighted mean from the step to the next one (at most a window),
 #: leaving `STEP_MARGIN` pixels out at each end (blur), over at least ``1 / STEP_SPAN`` of a
 #: window; it must reach `STEP_HEIGHT` of the threshold.  Within a window of a line's end only
 #: one view exists: there the change must not be the echo of a step a window away
 #: (`STEP_ECHO`), and the ratio's two halves must agree within `STEP_CONSTANCY` of the height.
-#: The threshold is the earlier detector's (chosen on the 1296x972 captures of issue 8); the
-#: rest were set on the 5 MP seed-0 captures and the 640x480 test rig, and checked on other
-#: seeds and rigs (docs/accuracy.md).
-STEP_THRESHOLD = 1.0
+#: The threshold was 1.0 (the earlier detector's, chosen on the 0.25/0.9 checker of issue 8)
+#: until the forty-seventh session: a checker just under it lost every step and decoded worst
+#: of all (its edges leak into the carriers nearly as much, and none was divided out), e.g. a
+#: 0.3/0.8 checker of 25 mm on a 1600x1200 camera 75-83 % complete with medians of 1-8 mm;
+#: with 0.8 and the sharpness test 89-92 % and 0.4-0.9 mm (docs/accuracy.md, "Checkers of
+#: lower contrast").  The rest were set on the 5 MP seed-0 captures and the 640x480 test rig,
+#: and checked on other seeds and rigs (docs/accuracy.md).
+STEP_THRESHOLD = 0.8
+#: A candidate's change across boxes of a third of the step box (at least 2 px) must be at
+#: least `STEP_SHARPNESS` of its change across the whole boxes, the same way (`_is_sharp`): a
+#: reflectance edge is as sharp as the optics blur it, the steep part of a smooth albedo is
+#: not.  So an edge blurred by much more than 2 px (a Gaussian) is not found at a window of
+#: 50 px (blurred by 2 / 2.5 px: 37 / 5 of 40 edges; at 110 px all up to 3 px; synthetic
+#: lines).  Measured with the threshold of 0.8: without the test it cost the smooth albedo
+#: 0.1-0.2 points at 1296x972 and 0.3-0.4 at 5 MP with 12 % more RMS; with it nothing at
+#: 1296x972 and 0.06-0.12 points at 5 MP, with 5-10 % less RMS.
+STEP_SHARPNESS = 0.5
 STEP_BOX = 0.125
 STEP_MIN_BOX = 2
 STEP_FIND = 0.7
@@ -1112,6 +1126,17 @@ def _ratio_less_steps(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], ke
     return _ratio_mean(cum_g, cum_w, lo, hi) - total
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _is_sharp(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], change: NDArray[np.float64], at: int, box: int,
+              sharpness: float) -> bool:
+    """Whether the lag ratio's change at pixel `at` across boxes of a third of `box` (at least
+    2 px) is at least `sharpness` of its change across boxes of `box` (`change`), the same way:
+    an edge as sharp as the optics blur it, not the steep part of a smooth albedo."""
+    inner = max(2, box // 3)
+    short = _ratio_mean(cum_g, cum_w, at, at + inner) - _ratio_mean(cum_g, cum_w, at - inner, at)
+    return short * change[at] > 0 and abs(short) >= sharpness * abs(change[at])
+
+
 @numba.njit(cache=True, nogil=True)
 def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int, least: float,
                    evidence: NDArray[np.float64], one_sided: NDArray[np.bool_]) -> None:
@@ -1143,8 +1168,8 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 
 @numba.njit(cache=True, nogil=True)
-def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, soft: bool,
-                kept: NDArray[np.intp], heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
+def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, sharpness: float,
+                soft: bool, kept: NDArray[np.intp], heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
     `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
     `soft` whether the lag ratio is flat over the span the height was measured on into `flat`
@@ -1175,7 +1200,7 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
             largest = 0.0
             for k in range(max(x - box, 0), min(x + box + 1, w)):
                 largest = max(largest, abs(evidence[k]))
-            if s >= largest:
+            if s >= largest and _is_sharp(cum_g, cum_w, change, x if usable[x] else x + t, box, sharpness):
                 found[n_found] = x
                 n_found += 1
     n_kept = 0
@@ -1302,7 +1327,8 @@ def _bright_side_shift(height: float, spread: float) -> float:
 
 @numba.njit(cache=True, nogil=True)
 def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
-                       both_ways: bool, spread: float, rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
+                       sharpness: float, both_ways: bool, spread: float, rows: NDArray[np.intp],
+                       out: NDArray[np.float32]) -> None:
     """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
     per row."""
     w = img.shape[1]
@@ -1316,16 +1342,18 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
             out[r] = 1.0
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        n_ahead, n_back = _line_steps(img[r], t, box, floor, threshold, spread > 0, ahead, ahead_h, ahead_flat), 0
+        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharpness, spread > 0, ahead, ahead_h, ahead_flat)
+        n_back = 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, spread > 0, back, back_h, back_flat)
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharpness, spread > 0, back, back_h,
+                                 back_flat)
         _two_way_level(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, spread, out[r])
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
-                  threshold: float = STEP_THRESHOLD, both_ways: bool = True,
+                  threshold: float = STEP_THRESHOLD, sharpness: float = STEP_SHARPNESS, both_ways: bool = True,
                   spread: float = STEP_SPREAD) -> NDArray[np.float32]:
     """Relative albedo made of the sharp steps found along each line (1 left of the first).
 
@@ -1337,7 +1365,9 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     troughs counts little) across a short box on either side of each pixel finds both; a step
     needs both views to agree, which a change of code or a depth edge (where ``g`` oscillates
     with the pattern instead) rarely does with the same height, and the echo one window after
-    a step is not one (its other view is 0).  Boxes of an eighth of a window, not whole windows,
+    a step is not one (its other view is 0); and it must be about as sharp across a third of
+    the box as across the box (`sharpness`, `STEP_SHARPNESS`: not the steep part of a smooth
+    albedo).  Boxes of an eighth of a window, not whole windows,
     so that a strip of one reflectance narrower than a window (a checker square seen obliquely)
     keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
     what the steps kept within a window before it still add there (``g`` sums every step of
@@ -1358,7 +1388,8 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty(img.shape, dtype=np.float32)
-    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, both_ways, float(spread), rows, out),
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness), both_ways,
+                                              float(spread), rows, out),
               img.shape[0])
     return out
 
@@ -1390,10 +1421,10 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
 
     Estimates (`estimate`; keyword `options` in brackets):
 
-    * ``"steps"`` (threshold, both_ways, spread; see `_albedo_steps`): only the sharp steps, found
-      where the capture stops repeating itself one carrier period later; between them 1, so a
-      smooth albedo is left to the flat field; a step over which that repetition holds (an
-      albedo edge) blurred as the camera blurs it.  The only one that helped (issue 8).
+    * ``"steps"`` (threshold, sharpness, both_ways, spread; see `_albedo_steps`): only the
+      sharp steps, found where the capture stops repeating itself one carrier period later;
+      between them 1, so a smooth albedo is left to the flat field; a step over which that
+      repetition holds (an albedo edge) blurred as the camera blurs it.  The only one that helped (issue 8).
     * ``"sharp-steps"``: the same steps, none blurred (``spread=0``).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
