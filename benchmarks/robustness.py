@@ -144,7 +144,7 @@ FACTORS = (
            lambda v, c: _sphere(c, full_well_e=None if v == 0 else v)),
     Factor("ambient", "fraction of full white", (0.0, 0.1, 0.2, 0.3, 0.5), (0.0, 0.2, 0.5),
            lambda v, c: _sphere(c, ambient=v)),
-    Factor("albedo contrast", "dark square albedo (bright 0.9)", (0.9, 0.6, 0.4, 0.25, 0.1, 0.03), (0.9, 0.25, 0.05),
+    Factor("albedo contrast", "dark square albedo (bright 0.9)", (0.9, 0.6, 0.4, 0.25, 0.1, 0.03), (0.9, 0.4, 0.25, 0.05),
            _checker),
     Factor("gamma mismatch", "projector gamma - pre-correction gamma", (-0.6, -0.3, 0.0, 0.3, 0.6, BASE_GAMMA),
            (-0.3, 0.0, 0.3, BASE_GAMMA), lambda v, c: _sphere(c), _precorrected),
