@@ -38,14 +38,18 @@ SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
 #: variant -> (estimate, options of `normalise_albedo`); "none": no normalisation; "steps" is
 #: the default of `demodulate_window` (its flat steps blurred, since the forty-fifth session);
 #: "sharp-steps": none blurred; "steps-one-way": its lines read left to right only (the
-#: detector until the fourteenth session); "steps-soft": every sharp step blurred along the
-#: lines (a Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the others: `_truth_gain`.
+#: detector until the fourteenth session); "steps-threshold-1": steps of a reflectance ratio of e
+#: and more, sharp or not (until the forty-seventh session); "steps-unsharp": the threshold of
+#: 0.8 without the sharpness test; "steps-soft": every sharp step blurred along the lines (a
+#: Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the others: `_truth_gain`.
 VARIANTS = {
     "none": (None, {}),
     "steps": ("steps", {}),
     "sharp-steps": ("sharp-steps", {}),
     "steps-one-way": ("steps", dict(both_ways=False)),
     "steps-0.7": ("steps", dict(threshold=0.7)),
+    "steps-threshold-1": ("steps", dict(threshold=1.0, sharpness=0.0)),
+    "steps-unsharp": ("steps", dict(sharpness=0.0)),
     "steps-soft": ("steps-soft", {}),
     "closing": ("closing", {}),
     "envelopes": ("envelopes", {}),
