@@ -40,7 +40,8 @@ SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
 #: "sharp-steps": none blurred; "steps-one-way": its lines read left to right only (the
 #: detector until the fourteenth session); "steps-threshold-1": steps of a reflectance ratio of e
 #: and more, sharp or not (until the forty-seventh session); "steps-unsharp": the threshold of
-#: 0.8 without the sharpness test; "steps-soft": every sharp step blurred along the lines (a
+#: 0.8 without the sharpness test; "steps-unflat": without the flatness test under 1.0
+#: (`STEP_FLAT_BELOW`); "steps-soft": every sharp step blurred along the lines (a
 #: Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the others: `_truth_gain`.
 VARIANTS = {
     "none": (None, {}),
@@ -50,6 +51,7 @@ VARIANTS = {
     "steps-0.7": ("steps", dict(threshold=0.7)),
     "steps-threshold-1": ("steps", dict(threshold=1.0, sharpness=0.0)),
     "steps-unsharp": ("steps", dict(sharpness=0.0)),
+    "steps-unflat": ("steps", dict(flat_below=0.0)),
     "steps-soft": ("steps-soft", {}),
     "closing": ("closing", {}),
     "envelopes": ("envelopes", {}),

@@ -6,8 +6,9 @@ import numpy as np
 import scipy.ndimage
 from numpy.typing import NDArray
 
-from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONSTANCY, STEP_ECHO, STEP_FIND, STEP_HEIGHT,
-                                STEP_MARGIN, STEP_MIN_BOX, STEP_SHARPNESS, STEP_SPAN, STEP_THRESHOLD)
+from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONSTANCY, STEP_ECHO, STEP_FIND, STEP_FLAT,
+                                STEP_FLAT_BELOW, STEP_HEIGHT, STEP_MARGIN, STEP_MIN_BOX, STEP_SHARPNESS, STEP_SPAN,
+                                STEP_THRESHOLD)
 
 
 def _ratio_means(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: NDArray[np.intp],
@@ -99,6 +100,12 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
                 height = 0.5 * (first + second)
                 steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
                 if (steady or not one_sided[r, x0]) and abs(height) >= STEP_HEIGHT * threshold:
+                    if abs(height) < STEP_HEIGHT * STEP_FLAT_BELOW:  # a lower step must be flat
+                        u = np.arange(lo, hi)
+                        wt, g = weight[r, u], lg[r, u] - lg[r, u - t]
+                        mean = (wt * g).sum() / wt.sum()
+                        if np.sqrt(max((wt * g * g).sum() / wt.sum() - mean**2, 0.0)) > STEP_FLAT * abs(height):
+                            continue
                     kept.append((int(x0), height))
                     steps[r, x0] = height
         step_heights[rows] = steps

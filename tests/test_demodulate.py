@@ -422,6 +422,24 @@ def test_albedo_steps_must_be_as_sharp_as_the_optics_blur_them():
     assert lines_with_steps(ramp(1.3)) == 0
 
 
+def test_albedo_steps_under_the_old_threshold_must_be_flat():
+    """`STEP_FLAT_BELOW`: light without the pattern added right of a pixel (a pedestal of 0.5 on
+    the lines' 0.35, as at a limb or a shadow's border: the ratio one window back swings with
+    the pattern) rises by a log step of 0.86, sharply; it is no albedo edge and is not kept,
+    where without the flatness test every line keeps it."""
+    image, _ = synthetic_lines(amplitudes=(0.1, 0.05, 0.08, 0.1), slope=0, dc=0.35, noise=0.003,
+                               rng=np.random.default_rng(9), lines=20)
+    lit = np.where(np.arange(600) >= 300, image + 0.5, image).astype(np.float32)
+    windows = np.full(20, 50)
+
+    def lines_with_steps(**options):
+        estimate = _albedo_steps(lit, windows, spread=0, **options)
+        return int(np.any(np.diff(np.log(estimate), axis=1) != 0, axis=1).sum())
+
+    assert lines_with_steps() == 0
+    assert lines_with_steps(flat_below=0.0) == 20
+
+
 def test_albedo_steps_ignore_a_depth_edge_and_a_steps_echo_at_a_line_end():
     """The pattern shifted by 0.3 windows (a depth edge: the ratio one window back oscillates
     with the pattern) is no step; a step 20 px before the last window is found once, not again
@@ -509,9 +527,11 @@ def test_albedo_steps_kernel_equals_the_numpy_form():
 
 def test_albedo_steps_blur_the_albedo_edges_and_keep_the_others_sharp():
     """The steps over which the lag ratio is flat are blurred (`STEP_FLAT`): on the checkered
-    sphere nearly all of those within 2 px of a true albedo edge (measured 94 %; seed 3: 93 %),
-    few of the others (at the limb and the shadows, where the ratio swings with the pattern:
-    12 %; seed 3: 11 %); a blurred step keeps its levels either side of the blur."""
+    sphere nearly all of those within 2 px of a true albedo edge (measured 94.5 %, 5682 of 6011;
+    93-94 % before the forty-seventh session), few of the others (at the limb and the shadows,
+    where the ratio swings with the pattern: 32 %, 48 of 151; 11-12 % before, when no step under
+    a height of 1.0 was kept, now kept only if flat); a blurred step keeps its levels either
+    side of the blur."""
     capture, img, windows = _checkered_sphere_640()
     h, w = img.shape
     sharp, soft = _albedo_steps(img, windows, spread=0), _albedo_steps(img, windows)
@@ -523,7 +543,7 @@ def test_albedo_steps_blur_the_albedo_edges_and_keep_the_others_sharp():
     edge[:, 1:] = np.abs(np.diff(log_albedo, axis=1)) > 0.5
     near = scipy.ndimage.maximum_filter1d(edge, 5, axis=1)
     assert (blurred & near).sum() >= 0.85 * (step & near).sum()
-    assert (blurred & ~near).sum() <= 0.25 * (step & ~near).sum()
+    assert (blurred & ~near).sum() <= 0.4 * (step & ~near).sum()
     beyond = ~scipy.ndimage.maximum_filter1d(step, 2 * 4 + 1, axis=1)  # farther from a step than the blur's reach
     np.testing.assert_allclose(soft[beyond], sharp[beyond], rtol=1e-4)  # the blur's tails under 1e-4
 
@@ -532,10 +552,10 @@ def test_albedo_steps_read_both_ways_find_more_true_edges():
     """A step missed along a line spoils the heights of the next ones within a window; read
     the other way, the heights are measured on the other side.  On the checkered sphere the
     two ways find more of the true edges (steps of the rendered albedo by more than a factor
-    1.65) than the left-to-right reading alone, within 2 px: measured 74.4 -> 76.8 % (with the
+    1.65) than the left-to-right reading alone, within 2 px: measured 72.9 -> 75.4 % (with the
     threshold of 1.0 until the forty-seventh session 69.6 -> 71.9 %; seed 3: 69.5 -> 71.8 %;
-    800x600: 74.1 -> 76.1 %), with 3.7 % of the steps more than 2 px from a true edge (one
-    way: 2.9 %; 1.7 and 1.1 % with the threshold of 1.0).  Margins: 1.5 points gained, 4.5 %
+    800x600: 74.1 -> 76.1 %), with 2.5 % of the steps more than 2 px from a true edge (one
+    way: 1.5 %; 1.7 and 1.1 % with the threshold of 1.0).  Margins: 1.5 points gained, 3.5 %
     stray."""
     capture, img, windows = _checkered_sphere_640()
     h, w = img.shape
@@ -556,7 +576,7 @@ def test_albedo_steps_read_both_ways_find_more_true_edges():
 
     (found_one, _), (found_two, stray_two) = found_and_stray(one_way), found_and_stray(two_ways)
     assert found_two >= found_one + 0.015
-    assert stray_two <= 0.045
+    assert stray_two <= 0.035
 
 
 def test_the_scale_map_is_the_mean_of_the_measurements_in_its_box():

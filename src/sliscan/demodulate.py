@@ -1065,9 +1065,9 @@ ALBEDO_ESTIMATES = ("steps", "sharp-steps", "closing", "envelopes", "guided", "n
 #: until the forty-seventh session: a checker just under it lost every step and decoded worst
 #: of all (its edges leak into the carriers nearly as much, and none was divided out), e.g. a
 #: 0.3/0.8 checker of 25 mm on a 1600x1200 camera 75-83 % complete with medians of 1-8 mm;
-#: with 0.8 and the sharpness test 89-92 % and 0.4-0.9 mm (docs/accuracy.md, "Checkers of
-#: lower contrast").  The rest were set on the 5 MP seed-0 captures and the 640x480 test rig,
-#: and checked on other seeds and rigs (docs/accuracy.md).
+#: with 0.8 and the sharpness and flatness tests below 88-91 % and 0.4-1.0 mm
+#: (docs/accuracy.md, "Checkers of lower contrast").  The rest were set on the 5 MP seed-0
+#: captures and the 640x480 test rig, and checked on other seeds and rigs (docs/accuracy.md).
 STEP_THRESHOLD = 0.8
 #: A candidate's change across boxes of a third of the step box (at least 2 px) must be at
 #: least `STEP_SHARPNESS` of its change across the whole boxes, the same way (`_is_sharp`): a
@@ -1075,9 +1075,15 @@ STEP_THRESHOLD = 0.8
 #: not.  So an edge blurred by much more than 2 px (a Gaussian) is not found at a window of
 #: 50 px (blurred by 2 / 2.5 px: 37 / 5 of 40 edges; at 110 px all up to 3 px; synthetic
 #: lines).  Measured with the threshold of 0.8: without the test it cost the smooth albedo
-#: 0.1-0.2 points at 1296x972 and 0.3-0.4 at 5 MP with 12 % more RMS; with it nothing at
-#: 1296x972 and 0.06-0.12 points at 5 MP, with 5-10 % less RMS.
+#: 0.1-0.2 points at 1296x972 and 0.3-0.4 at 5 MP with 12 % more RMS; with it (and the
+#: flatness test) 0.06 points at 1296x972 and -0.17 / +0.04 at 5 MP, with 5-10 % less RMS.
 STEP_SHARPNESS = 0.5
+#: A step under e ** `STEP_FLAT_BELOW` (the threshold until the forty-seventh session) must also
+#: be flat (`STEP_FLAT`: the lag ratio the same over its span, an albedo edge), not the border
+#: of a limb or a shadow, where the ratio swings with the pattern: without this the 5 MP
+#: cylinder's limbs gave such steps, and the phase pattern, which divides them out sharp,
+#: decoded 1,500 px beside them more than a stripe off (RMS 2.83 -> 4.78 mm; with it 2.47).
+STEP_FLAT_BELOW = 1.0
 STEP_BOX = 0.125
 STEP_MIN_BOX = 2
 STEP_FIND = 0.7
@@ -1169,7 +1175,8 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 @numba.njit(cache=True, nogil=True)
 def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, sharpness: float,
-                soft: bool, kept: NDArray[np.intp], heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
+                flat_below: float, soft: bool, kept: NDArray[np.intp], heights: NDArray[np.float64],
+                flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
     `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
     `soft` whether the lag ratio is flat over the span the height was measured on into `flat`
@@ -1217,9 +1224,12 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
             height = 0.5 * (first + second)
             steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
             if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold:
-                kept[n_kept], heights[n_kept] = x, height
-                flat[n_kept] = soft and _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height)
-                n_kept += 1
+                tall = abs(height) >= STEP_HEIGHT * flat_below
+                is_flat = (soft or not tall) and _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height)
+                if tall or is_flat:
+                    kept[n_kept], heights[n_kept] = x, height
+                    flat[n_kept] = soft and is_flat
+                    n_kept += 1
     return n_kept
 
 
@@ -1327,7 +1337,7 @@ def _bright_side_shift(height: float, spread: float) -> float:
 
 @numba.njit(cache=True, nogil=True)
 def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
-                       sharpness: float, both_ways: bool, spread: float, rows: NDArray[np.intp],
+                       sharpness: float, flat_below: float, both_ways: bool, spread: float, rows: NDArray[np.intp],
                        out: NDArray[np.float32]) -> None:
     """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
     per row."""
@@ -1342,18 +1352,20 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
             out[r] = 1.0
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharpness, spread > 0, ahead, ahead_h, ahead_flat)
+        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharpness, flat_below, spread > 0, ahead, ahead_h,
+                              ahead_flat)
         n_back = 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharpness, spread > 0, back, back_h,
-                                 back_flat)
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharpness, flat_below, spread > 0, back,
+                                 back_h, back_flat)
         _two_way_level(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, spread, out[r])
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
-                  threshold: float = STEP_THRESHOLD, sharpness: float = STEP_SHARPNESS, both_ways: bool = True,
+                  threshold: float = STEP_THRESHOLD, sharpness: float = STEP_SHARPNESS,
+                  flat_below: float = STEP_FLAT_BELOW, both_ways: bool = True,
                   spread: float = STEP_SPREAD) -> NDArray[np.float32]:
     """Relative albedo made of the sharp steps found along each line (1 left of the first).
 
@@ -1367,7 +1379,8 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     with the pattern instead) rarely does with the same height, and the echo one window after
     a step is not one (its other view is 0); and it must be about as sharp across a third of
     the box as across the box (`sharpness`, `STEP_SHARPNESS`: not the steep part of a smooth
-    albedo).  Boxes of an eighth of a window, not whole windows,
+    albedo), and under a height of `flat_below` (`STEP_FLAT_BELOW`) flat over its span (an
+    albedo edge, not a limb's or a shadow's border).  Boxes of an eighth of a window, not whole windows,
     so that a strip of one reflectance narrower than a window (a checker square seen obliquely)
     keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
     what the steps kept within a window before it still add there (``g`` sums every step of
@@ -1388,8 +1401,8 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty(img.shape, dtype=np.float32)
-    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness), both_ways,
-                                              float(spread), rows, out),
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness), float(flat_below),
+                                              both_ways, float(spread), rows, out),
               img.shape[0])
     return out
 
@@ -1421,10 +1434,10 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
 
     Estimates (`estimate`; keyword `options` in brackets):
 
-    * ``"steps"`` (threshold, sharpness, both_ways, spread; see `_albedo_steps`): only the
-      sharp steps, found where the capture stops repeating itself one carrier period later;
-      between them 1, so a smooth albedo is left to the flat field; a step over which that
-      repetition holds (an albedo edge) blurred as the camera blurs it.  The only one that helped (issue 8).
+    * ``"steps"`` (threshold, sharpness, flat_below, both_ways, spread; see `_albedo_steps`):
+      only the sharp steps, found where the capture stops repeating itself one carrier period
+      later; between them 1, so a smooth albedo is left to the flat field; a step over which
+      that repetition holds (an albedo edge) blurred as the camera blurs it.  The only one that helped (issue 8).
     * ``"sharp-steps"``: the same steps, none blurred (``spread=0``).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
