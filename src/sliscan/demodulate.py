@@ -1180,7 +1180,8 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
     `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
     `soft` whether the lag ratio is flat over the span the height was measured on into `flat`
-    (`STEP_FLAT`; False for all without); returns how many."""
+    (`STEP_FLAT`; False for all without); `threshold`, `sharpness` and `flat_below` as in
+    `_albedo_steps`; returns how many."""
     w = line.size
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
     logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
@@ -1380,9 +1381,9 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     a step is not one (its other view is 0); and it must be about as sharp across a third of
     the box as across the box (`sharpness`, `STEP_SHARPNESS`: not the steep part of a smooth
     albedo), and under a height of `flat_below` (`STEP_FLAT_BELOW`) flat over its span (an
-    albedo edge, not a limb's or a shadow's border).  Boxes of an eighth of a window, not whole windows,
-    so that a strip of one reflectance narrower than a window (a checker square seen obliquely)
-    keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
+    albedo edge, not a limb's or a shadow's border).  Boxes of an eighth of a window, not whole
+    windows, so that a strip of one reflectance narrower than a window (a checker square seen
+    obliquely) keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
     what the steps kept within a window before it still add there (``g`` sums every step of
     the last window).  So a step the detector misses spoils the heights of the steps after it
     within a window, which may then be rejected in turn; read right to left, each height is
@@ -1437,7 +1438,8 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
     * ``"steps"`` (threshold, sharpness, flat_below, both_ways, spread; see `_albedo_steps`):
       only the sharp steps, found where the capture stops repeating itself one carrier period
       later; between them 1, so a smooth albedo is left to the flat field; a step over which
-      that repetition holds (an albedo edge) blurred as the camera blurs it.  The only one that helped (issue 8).
+      that repetition holds (an albedo edge) blurred as the camera blurs it.  The only one that
+      helped (issue 8).
     * ``"sharp-steps"``: the same steps, none blurred (``spread=0``).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
