@@ -299,10 +299,8 @@ def test_depth_edge_filters_take_the_mixed_points_off_a_multi_shot_scan(small_ri
 
 def test_narrow_runs_removed_by_the_scanner_are_mostly_wrong_codes(small_rig):
     """The thesis's pattern on the realistic steps, decided per pixel: the runs the narrow-run
-    filter drops sit at the depth edges, where windows straddle them; about half or more are on
-    a wrong stripe (79 % when this test was written, 59 % since runs go on across short gaps,
-    48 % since the forty-seventh session's albedo steps left fewer wrong codes there to drop:
-    415 of 868 dropped pixels, against 799 of 1266; seeds 4 and 5 of this rig 95-100 %; 0.4
+    filter drops sit at the depth edges, where windows straddle them; most are on a wrong
+    stripe (79 % when this test was written, 59 % since runs go on across short gaps; 0.5
     leaves room for seeds), while the points kept are right 97 % of the time (0.95 leaves
     room).  (Decided by order, the default, the runs there are filled in, right more often:
     35 % of the dropped ones wrong on this capture, but without the filter gross outliers rise
@@ -320,7 +318,7 @@ def test_narrow_runs_removed_by_the_scanner_are_mostly_wrong_codes(small_rig):
     dropped = unfiltered.valid & ~kept.valid
     truth = true_stripes(capture.truth, spec)
     assert dropped.sum() > 200
-    assert (unfiltered.stripe[dropped] != truth[dropped]).mean() > 0.4
+    assert (unfiltered.stripe[dropped] != truth[dropped]).mean() > 0.5
     assert (kept.stripe[kept.valid] == truth[kept.valid]).mean() > 0.95
 
 
