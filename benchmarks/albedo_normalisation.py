@@ -28,7 +28,7 @@ import numpy as np
 import scipy.ndimage
 
 from sliscan import patterns, simulate
-from sliscan.demodulate import Demodulated, demodulate_window, detect_carriers, normalise_albedo
+from sliscan.demodulate import Demodulated, albedo_estimate, demodulate_window, detect_carriers, normalise_albedo
 from sliscan.evaluate import true_stripes
 from sliscan.pipeline import Scanner
 
@@ -97,12 +97,11 @@ class _Scanner(Scanner):
         if self._estimate is None:
             return demodulate_window(img, carriers, albedo=None), carriers
         if self._estimate.startswith("oracle"):
-            steps = normalise_albedo(img, carriers, estimate="sharp-steps")[1] if self._estimate == "oracle-found" else None
+            steps = albedo_estimate(img, carriers, estimate="sharp-steps") if self._estimate == "oracle-found" else None
             gain = _truth_gain(self._estimate, self._truth, steps)
             normalised = img / gain
         elif self._estimate == "steps-soft":
-            gain = scipy.ndimage.gaussian_filter1d(normalise_albedo(img, carriers, estimate="sharp-steps")[1], SOFT_SIGMA,
-                                                   axis=1)
+            gain = scipy.ndimage.gaussian_filter1d(albedo_estimate(img, carriers, estimate="sharp-steps"), SOFT_SIGMA, axis=1)
             normalised = img / gain
         else:
             normalised, gain = normalise_albedo(img, carriers, estimate=self._estimate, **self._options)
