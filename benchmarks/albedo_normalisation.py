@@ -39,18 +39,21 @@ SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
 #: the default of `demodulate_window` (its flat steps blurred, since the forty-fifth session);
 #: "sharp-steps": none blurred; "steps-one-way": its lines read left to right only (the
 #: detector until the fourteenth session); "steps-threshold-1": steps of a reflectance ratio of e
-#: and more, sharp or not (until the forty-seventh session); "steps-unsharp": the threshold of
-#: 0.8 without the sharpness test; "steps-unflat": without the flatness test under 1.0
-#: (`STEP_FLAT_BELOW`); "steps-soft": every sharp step blurred along the lines (a
-#: Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the others: `_truth_gain`.
+#: and more, sharp or not (until the forty-seventh session); "steps-0.8": the threshold of 0.8
+#: without the concentration test (the forty-seventh session's); "steps-unsharp": without the
+#: sharpness test; "steps-unconcentrated": without the concentration test; "steps-unflat":
+#: without the flatness test under 1.0 (`STEP_FLAT_BELOW`); "steps-soft": every sharp step
+#: blurred along the lines (a Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the
+#: others: `_truth_gain`.
 VARIANTS = {
     "none": (None, {}),
     "steps": ("steps", {}),
     "sharp-steps": ("sharp-steps", {}),
     "steps-one-way": ("steps", dict(both_ways=False)),
-    "steps-0.7": ("steps", dict(threshold=0.7)),
-    "steps-threshold-1": ("steps", dict(threshold=1.0, sharpness=0.0)),
+    "steps-threshold-1": ("steps", dict(threshold=1.0, sharpness=0.0, concentration=0.0)),
+    "steps-0.8": ("steps", dict(threshold=0.8, concentration=0.0)),
     "steps-unsharp": ("steps", dict(sharpness=0.0)),
+    "steps-unconcentrated": ("steps", dict(concentration=0.0)),
     "steps-unflat": ("steps", dict(flat_below=0.0)),
     "steps-soft": ("steps-soft", {}),
     "closing": ("closing", {}),

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.ndimage
+import scipy.special
 from numpy.typing import NDArray
 
-from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONSTANCY, STEP_ECHO, STEP_FIND, STEP_FLAT,
-                                STEP_FLAT_BELOW, STEP_HEIGHT, STEP_MARGIN, STEP_MIN_BOX, STEP_SHARPNESS, STEP_SPAN,
-                                STEP_THRESHOLD)
+from sliscan.demodulate import (STEP_AGREEMENT, STEP_BOX, STEP_CONCENTRATION, STEP_CONSTANCY, STEP_ECHO, STEP_ENOUGH,
+                                STEP_FIND, STEP_FLAT, STEP_FLAT_BELOW, STEP_HEIGHT, STEP_MARGIN, STEP_MIN_BOX,
+                                STEP_SHARPNESS, STEP_SPAN, STEP_SPREAD, STEP_THRESHOLD)
 
 
 def _ratio_means(cum_g: NDArray[np.float64], cum_w: NDArray[np.float64], lo: NDArray[np.intp],
@@ -65,6 +66,8 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
         lo, mid, hi = np.clip(x - box, 0, w), x, np.clip(x + box, 0, w)
         change = np.where(usable, _ratio_means(cum_g, cum_w, mid, hi) - _ratio_means(cum_g, cum_w, lo, mid), 0.0)
         evidence, one_sided = _evidence(change, usable, t)
+        # what an edge blurred by STEP_SPREAD changes across the boxes, as a share of its height
+        edge_share = 1 - 2 * scipy.special.ndtr(-(np.arange(box) + 0.5) / STEP_SPREAD).sum() / box
         strength = np.abs(evidence)
         largest = scipy.ndimage.maximum_filter1d(strength, size=2 * box + 1, axis=1, mode="constant")
         # sharp: the change across boxes of a third of `box` (at its view: here, else a window on)
@@ -99,7 +102,9 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
                 first, second = mean(lo, mid), mean(mid, hi)
                 height = 0.5 * (first + second)
                 steady = first * second > 0 and abs(first - second) <= STEP_CONSTANCY * abs(height)
-                if (steady or not one_sided[r, x0]) and abs(height) >= STEP_HEIGHT * threshold:
+                concentrated = abs(evidence[r, x0]) >= min(STEP_CONCENTRATION * edge_share * abs(height),
+                                                           STEP_ENOUGH)  # not a slow rise
+                if (steady or not one_sided[r, x0]) and abs(height) >= STEP_HEIGHT * threshold and concentrated:
                     if abs(height) < STEP_HEIGHT * STEP_FLAT_BELOW:  # a lower step must be flat
                         u = np.arange(lo, hi)
                         wt, g = weight[r, u], lg[r, u] - lg[r, u - t]
