@@ -425,10 +425,10 @@ def test_albedo_steps_must_be_as_sharp_as_the_optics_blur_them():
 def test_albedo_steps_must_rise_within_a_box():
     """`STEP_CONCENTRATION`: on noisier lines (noise 0.01 on a DC of 0.35) a 0.55 / 0.9 edge (a
     log step of 0.49, under the threshold of 0.8 until the forty-eighth session) blurred by
-    1 px is found on every line, within a pixel of its own; smooth rises of 0.8 over 15 px and 1.3 over
-    20 px, whose noise gets some candidates past the sharpness test, on none, where without the
-    concentration test on 6 and 9 lines of 20 (measured): their change across the 6 px boxes
-    is about a third of their height."""
+    1 px is found on every line, within a pixel of its own; smooth rises of 0.8 over 15 px and
+    1.3 over 20 px, whose noise gets some candidates past the sharpness test, on none, where
+    without the concentration test on 6 and 9 lines of 20 (measured): their change across the
+    6 px boxes is about a third of their height."""
     image, _ = synthetic_lines(amplitudes=(0.1, 0.05, 0.08, 0.1), slope=0, dc=0.35, noise=0.01,
                                rng=np.random.default_rng(10), lines=20)
     x, windows = np.arange(600), np.full(20, 50)
