@@ -1201,13 +1201,14 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 @numba.njit(cache=True, nogil=True)
 def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, sharpness: float,
-                flat_below: float, concentration: float, soft: bool, kept: NDArray[np.intp],
+                flat_below: float, least_share: float, soft: bool, kept: NDArray[np.intp],
                 heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
     `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
     `soft` whether the lag ratio is flat over the span the height was measured on into `flat`
-    (`STEP_FLAT`; False for all without); `threshold`, `sharpness`, `flat_below` and
-    `concentration` as in `_albedo_steps`; returns how many."""
+    (`STEP_FLAT`; False for all without); `threshold`, `sharpness` and `flat_below` as in
+    `_albedo_steps`, `least_share` its `concentration` times `_edge_share` (the least change
+    across the boxes per unit of height, up to `STEP_ENOUGH`); returns how many."""
     w = line.size
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
     logs, change, evidence = np.empty(w), np.empty(w), np.empty(w)
@@ -1227,7 +1228,6 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
         if usable[x]:
             change[x] = _ratio_mean(cum_g, cum_w, x, x + box) - _ratio_mean(cum_g, cum_w, x - box, x)
     _step_evidence(change, usable, t, STEP_FIND * threshold, evidence, one_sided)
-    least_share = concentration * _edge_share(box, STEP_SPREAD)
     n_found = 0  # the largest evidence within a box on either side, one per box
     for x in range(w):
         s = abs(evidence[x])
@@ -1381,13 +1381,14 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
             out[r] = 1.0
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharpness, flat_below, concentration, spread > 0,
+        least_share = concentration * _edge_share(box, STEP_SPREAD)
+        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharpness, flat_below, least_share, spread > 0,
                               ahead, ahead_h, ahead_flat)
         n_back = 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharpness, flat_below, concentration,
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharpness, flat_below, least_share,
                                  spread > 0, back, back_h, back_flat)
         _two_way_level(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, spread, out[r])
 
@@ -1413,9 +1414,9 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     `concentration` of a blurred edge's (`STEP_CONCENTRATION`: an edge rises within a box, a
     smooth albedo's steep part over several).  Boxes of an eighth of a window, not whole
     windows, so that a strip of one reflectance narrower than a window (a checker square seen
-    obliquely) keeps both its edges.  A step's height is ``g``'s mean over the span to the next step, less
-    what the steps kept within a window before it still add there (``g`` sums every step of
-    the last window).  So a step the detector misses spoils the heights of the steps after it
+    obliquely) keeps both its edges.  A step's height is ``g``'s mean over the span to the next
+    step, less what the steps kept within a window before it still add there (``g`` sums every
+    step of the last window).  So a step the detector misses spoils the heights of the steps after it
     within a window, which may then be rejected in turn; read right to left, each height is
     measured on the span before its step instead, where the misses are others.  Each line is
     read both ways (`_line_steps`): a step found either way is kept, and where both ways found
@@ -1466,11 +1467,10 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
     Estimates (`estimate`; keyword `options` in brackets):
 
     * ``"steps"`` (threshold, sharpness, flat_below, concentration, both_ways, spread; see
-      `_albedo_steps`):
-      only the sharp steps, found where the capture stops repeating itself one carrier period
-      later; between them 1, so a smooth albedo is left to the flat field; a step over which
-      that repetition holds (an albedo edge) blurred as the camera blurs it.  The only one that
-      helped (issue 8).
+      `_albedo_steps`): only the sharp steps, found where the capture stops repeating itself
+      one carrier period later; between them 1, so a smooth albedo is left to the flat field;
+      a step over which that repetition holds (an albedo edge) blurred as the camera blurs it.
+      The only one that helped (issue 8).
     * ``"sharp-steps"``: the same steps, none blurred (``spread=0``).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
