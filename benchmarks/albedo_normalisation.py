@@ -17,6 +17,7 @@ narrow-run filters included); only its demodulation is replaced.
 
     python benchmarks/albedo_normalisation.py --captures /tmp/albedo-captures
     python benchmarks/albedo_normalisation.py --variants none,steps --seeds 0 --scenes sphere
+    python benchmarks/albedo_normalisation.py --camera-blur 2 --albedo checker --variants steps,steps-blur-1,oracle
 """
 
 from __future__ import annotations
@@ -42,7 +43,9 @@ SCENES = {"sphere": simulate.sphere_scene, "steps": simulate.steps_scene}
 #: and more, sharp or not (until the forty-seventh session); "steps-0.8": the threshold of 0.8
 #: without the concentration test (the forty-seventh session's); "steps-unsharp": without the
 #: sharpness test; "steps-unconcentrated": without the concentration test; "steps-unflat":
-#: without the flatness test under 1.0 (`STEP_FLAT_BELOW`); "steps-soft": every sharp step
+#: without the flatness test under 1.0 (`STEP_FLAT_BELOW`); "steps-blur-1": the camera's blur
+#: taken as 1 px, not measured on the capture (until the forty-ninth session; the same on a
+#: 1 px camera); "steps-soft": every sharp step
 #: blurred along the lines (a Gaussian of `SOFT_SIGMA` px, the thirteenth session's try); the
 #: others: `_truth_gain`.
 VARIANTS = {
@@ -55,6 +58,7 @@ VARIANTS = {
     "steps-unsharp": ("steps", dict(sharpness=0.0)),
     "steps-unconcentrated": ("steps", dict(concentration=0.0)),
     "steps-unflat": ("steps", dict(flat_below=0.0)),
+    "steps-blur-1": ("steps", dict(blur=1.0)),
     "steps-soft": ("steps-soft", {}),
     "closing": ("closing", {}),
     "envelopes": ("envelopes", {}),
@@ -69,9 +73,9 @@ VARIANTS = {
 SOFT_SIGMA = 0.8
 
 
-def _truth_gain(name: str, truth_albedo: np.ndarray, steps: np.ndarray) -> np.ndarray:
+def _truth_gain(name: str, truth_albedo: np.ndarray, steps: np.ndarray, blur: float) -> np.ndarray:
     """The true albedo as the normalisation's gain: "oracle" blurred like the camera blurs
-    (sigma 1 px), "oracle-sharp" as rendered (pixels on an edge hold their areas' mean),
+    (sigma `blur` px), "oracle-sharp" as rendered (pixels on an edge hold their areas' mean),
     "oracle-found" blurred but with only the edges within 4 px of a step of the `steps`
     estimate (along the lines): the estimate's edges, placed and sized exactly."""
     albedo = np.where(np.isfinite(truth_albedo), truth_albedo, 1.0).astype(np.float64)
@@ -83,16 +87,16 @@ def _truth_gain(name: str, truth_albedo: np.ndarray, steps: np.ndarray) -> np.nd
         change = np.diff(log_albedo, axis=1, prepend=log_albedo[:, :1]) * near
         albedo = np.exp(log_albedo[:, :1] + np.cumsum(change, axis=1))
     if name != "oracle-sharp":
-        albedo = scipy.ndimage.gaussian_filter(albedo, 1.0)
+        albedo = scipy.ndimage.gaussian_filter(albedo, blur)
     return np.maximum(albedo, 1e-3).astype(np.float32)
 
 
 class _Scanner(Scanner):
     """`Scanner` whose window demodulation divides the capture by a given albedo estimate."""
 
-    def __init__(self, spec, calibration, estimate, options, truth_albedo):
+    def __init__(self, spec, calibration, estimate, options, truth_albedo, blur):
         super().__init__(spec, calibration)
-        self._estimate, self._options, self._truth = estimate, options, truth_albedo
+        self._estimate, self._options, self._truth, self._blur = estimate, options, truth_albedo, blur
 
     def demodulate(self, image):
         img = np.asarray(image, dtype=np.float32)  # the default pattern: carriers along x
@@ -101,7 +105,7 @@ class _Scanner(Scanner):
             return demodulate_window(img, carriers, albedo=None), carriers
         if self._estimate.startswith("oracle"):
             steps = albedo_estimate(img, carriers, estimate="sharp-steps") if self._estimate == "oracle-found" else None
-            gain = _truth_gain(self._estimate, self._truth, steps)
+            gain = _truth_gain(self._estimate, self._truth, steps, self._blur)
             normalised = img / gain
         elif self._estimate == "steps-soft":
             gain = scipy.ndimage.gaussian_filter1d(albedo_estimate(img, carriers, estimate="sharp-steps"), SOFT_SIGMA, axis=1)
@@ -134,6 +138,7 @@ def main() -> None:
     parser.add_argument("--albedo", default="checker,smooth")
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--captures", help="folder caching the rendered captures (npz, as accuracy.py --captures)")
+    parser.add_argument("--camera-blur", type=float, default=1.0, help="the camera's Gaussian sigma (px)")
     args = parser.parse_args()
     camera = tuple(int(v) for v in args.camera.split("x"))
     projector = tuple(int(v) for v in args.projector.split("x"))
@@ -147,11 +152,14 @@ def main() -> None:
         scene = SCENES[scene_name]()
         for albedo in args.albedo.split(","):
             for seed in (int(s) for s in args.seeds.split(",")):
-                capture = render_cached(args.captures, f"sliscan-4-bit_{scene_name}_{albedo}_{seed}_{args.camera}",
-                                        lambda: simulate.render(rig, scene, image, conditions(albedo, seed)))
+                blurred = "" if args.camera_blur == 1.0 else f"_blur{args.camera_blur:g}"
+                key = f"sliscan-4-bit_{scene_name}_{albedo}_{seed}_{args.camera}{blurred}"
+                capture = render_cached(args.captures, key,
+                                        lambda: simulate.render(rig, scene, image, conditions(albedo, seed).with_(
+                                            camera_blur_px=args.camera_blur)))
                 for name in args.variants.split(","):
                     estimate, options = VARIANTS[name]
-                    scanner = _Scanner(spec, rig.calibration, estimate, options, capture.truth.albedo)
+                    scanner = _Scanner(spec, rig.calibration, estimate, options, capture.truth.albedo, args.camera_blur)
                     t0 = time.perf_counter()
                     result = scanner.scan(capture.image)
                     seconds = time.perf_counter() - t0

@@ -17,6 +17,8 @@ frames); classic Gray code with 4-step phase refinement, 7 bits on 8-row codes (
 * gamma mismatch: the pattern pre-corrected for a gamma that differs from the projector's 2.2
   (mismatch = projector gamma - pre-correction gamma; 2.2 = no pre-correction);
 * blur: the projector's and the camera's Gaussian sigma (pixels);
+* camera blur: the camera's alone, on the sphere under a 40 mm checker of 0.25 / 0.9 (an albedo
+  edge is as sharp as the camera blurs it: the albedo-step detector measures it on the capture);
 * surface slope: a plane tilted about x (depth along the stripes' direction, stripes
   compressed) and about y (carriers compressed), 0-60 degrees;
 * projector roll: the projector turned about its own optical axis, 0-10 degrees, as a rig's
@@ -150,6 +152,8 @@ FACTORS = (
            (-0.3, 0.0, 0.3, BASE_GAMMA), lambda v, c: _sphere(c), _precorrected),
     Factor("blur", "sigma in projector and camera (px)", (0.0, 0.5, 1.0, 1.5, 2.0, 3.0), (0.0, 1.0, 2.0),
            lambda v, c: _sphere(c, projector_blur_px=v, camera_blur_px=v)),
+    Factor("camera blur", "camera sigma (px), 40 mm checker of 0.25 / 0.9", (0.5, 1.0, 1.5, 2.0, 2.5),
+           (0.5, 1.0, 2.0), lambda v, c: _checker(0.25, c.with_(camera_blur_px=v))),
     Factor("slope x", "tilt about x (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("x")),
     Factor("slope y", "tilt about y (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("y")),
     Factor("projector roll", "turn about its axis (deg)", (0, 1, 2, 3, 5, 10), (0, 3, 10),

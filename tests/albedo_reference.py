@@ -43,8 +43,14 @@ def _evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: int) ->
     return evidence, usable != later_usable
 
 
+def _edge_share(box: int, blur: float) -> float:
+    """What an edge blurred by a Gaussian of `blur` px changes across boxes of `box` px, as a
+    share of its height."""
+    return 1 - 2 * scipy.special.ndtr(-(np.arange(box) + 0.5) / blur).sum() / box
+
+
 def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshold: float,
-                   floor: float) -> NDArray[np.float64]:
+                   floor: float, blur: float) -> NDArray[np.float64]:
     """The log height of every step found reading the lines left to right, at its pixel."""
     h, w = img.shape
     step_heights = np.zeros((h, w), dtype=np.float64)
@@ -66,17 +72,19 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
         lo, mid, hi = np.clip(x - box, 0, w), x, np.clip(x + box, 0, w)
         change = np.where(usable, _ratio_means(cum_g, cum_w, mid, hi) - _ratio_means(cum_g, cum_w, lo, mid), 0.0)
         evidence, one_sided = _evidence(change, usable, t)
-        # what an edge blurred by STEP_SPREAD changes across the boxes, as a share of its height
-        edge_share = 1 - 2 * scipy.special.ndtr(-(np.arange(box) + 0.5) / STEP_SPREAD).sum() / box
+        edge_share = _edge_share(box, blur)
+        inner = max(2, box // 3)
+        # the sharpness asked of an edge blurred by `blur`, relative to one blurred by STEP_SPREAD
+        sharpness = STEP_SHARPNESS * (_edge_share(inner, blur) / edge_share) / (
+            _edge_share(inner, STEP_SPREAD) / _edge_share(box, STEP_SPREAD))
         strength = np.abs(evidence)
         largest = scipy.ndimage.maximum_filter1d(strength, size=2 * box + 1, axis=1, mode="constant")
         # sharp: the change across boxes of a third of `box` (at its view: here, else a window on)
-        inner = max(2, box // 3)
         at = np.where(usable, x, np.minimum(x + t, w - 1))
         short = (_ratio_means(cum_g, cum_w, at, np.minimum(at + inner, w))
                  - _ratio_means(cum_g, cum_w, np.maximum(at - inner, 0), at))
         full = np.take_along_axis(change, at, axis=1)
-        sharp = (short * full > 0) & (np.abs(short) >= STEP_SHARPNESS * np.abs(full))
+        sharp = (short * full > 0) & (np.abs(short) >= sharpness * np.abs(full))
         candidate = (strength >= STEP_FIND * threshold) & (strength >= largest) & sharp
         # one per box: a candidate within `box` after another one is a tie, and the first wins
         count = np.hstack([np.zeros((rows.size, box + 1), np.intp), np.cumsum(candidate, axis=1)])
@@ -118,14 +126,15 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
 
 
 def albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
-                 threshold: float = STEP_THRESHOLD) -> NDArray[np.float32]:
-    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring): the steps found either
-    way, heights averaged where both ways found one within a box."""
+                 threshold: float = STEP_THRESHOLD, blur: float = STEP_SPREAD) -> NDArray[np.float32]:
+    """`sliscan.demodulate._albedo_steps` in numpy (see its docstring) for a camera blur of
+    `blur` px, every step sharp: the steps found either way, heights averaged where both ways
+    found one within a box."""
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
-    ahead = _one_way_steps(img, windows, threshold, floor)
+    ahead = _one_way_steps(img, windows, threshold, floor, blur)
     # read right to left: a step up there at x' is a step down here, starting at w - x'
     back = np.zeros_like(ahead)
-    back[:, 1:] = -_one_way_steps(np.ascontiguousarray(img[:, ::-1]), windows, threshold, floor)[:, :0:-1]
+    back[:, 1:] = -_one_way_steps(np.ascontiguousarray(img[:, ::-1]), windows, threshold, floor, blur)[:, :0:-1]
     delta = ahead.copy()
     for r in np.nonzero((back != 0).any(axis=1))[0]:
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * int(windows[r]))))

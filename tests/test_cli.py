@@ -290,6 +290,27 @@ def test_scan_trim_edges_trims_the_run_ends_as_the_scanner_does(plane: tuple[Pat
     assert bad.returncode == 2 and not (tmp_path / "bad.npz").exists()
 
 
+def test_scan_camera_blur_reaches_the_scanner(plane: tuple[Path, str], tmp_path: Path) -> None:
+    """--camera-blur reaches the scanner (``Scanner(camera_blur=)``): a checkered plane scanned
+    for a 2.5 px camera equals the Python API's, and differs from the default's (the blur
+    measured on the capture: 1 px here); 0 is refused, nothing written."""
+    folder, _ = plane
+    ok("simulate", "--pattern", folder / "cp.json", "--scene", "plane", "--calibration", folder / "rig.json",
+       "--albedo", "checker", "--supersample", "1", "-o", "checker.png", cwd=tmp_path)
+    ok("scan", "checker.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+       "--camera-blur", "2.5", "--npz", "blurred.npz", cwd=tmp_path)
+    from_cli = npz.read_scan_npz(tmp_path / "blurred.npz")
+    spec, calibration = PatternSpec.load(folder / "cp.json"), Calibration.load(folder / "rig.json")
+    image = read_image(tmp_path / "checker.png")
+    blurred, measured = (Scanner(spec, calibration, camera_blur=blur).scan(image) for blur in (2.5, None))
+    assert not np.array_equal(blurred.confidence, measured.confidence)
+    np.testing.assert_array_equal(from_cli.valid, blurred.valid)
+    np.testing.assert_array_equal(from_cli.confidence, blurred.confidence)
+    bad = sliscan("scan", "checker.png", "--pattern", folder / "cp.json", "--calibration", folder / "rig.json",
+                  "--camera-blur", "0", "--npz", "bad.npz", cwd=tmp_path)
+    assert bad.returncode == 2 and not (tmp_path / "bad.npz").exists()
+
+
 def test_scan_stripe_centres_are_the_staircase_the_stripe_lines_remove(plane: tuple[Path, str],
                                                                         tmp_path: Path) -> None:
     """--stripe-centres reaches the scanner (``Scanner(interpolate_stripes=False)``): one line per

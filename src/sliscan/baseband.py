@@ -73,7 +73,7 @@ import scipy.fft
 from numpy.typing import NDArray
 
 from sliscan._threads import default_workers, over_rows
-from sliscan.demodulate import Carriers, Demodulated, albedo_estimate
+from sliscan.demodulate import STEP_SPREAD, Carriers, Demodulated, albedo_estimate
 
 #: Half-width of each carrier's band, in carrier spacings: the triangle window's transfer
 #: function is under 2.5 % of its peak beyond it (``sinc(1.5)**2``).
@@ -84,7 +84,7 @@ REACH = 1.5
 #: benchmark reading both ways as well changed the right stripes by 0.0-0.5 points (docs/speed.md,
 #: twentieth session); every step sharp (the window path's soft edges, `STEP_SPREAD`, gained
 #: 0-0.3 points of completeness here on the 5 MP checker: docs/accuracy.md, "Soft albedo edges").
-STEPS_OPTIONS: dict[str, bool | float] = {"both_ways": False, "spread": 0.0}
+STEPS_OPTIONS: dict[str, bool | float] = {"both_ways": False, "blur": STEP_SPREAD, "soft": False}
 #: The flat field's floor in `normalise_lines`, relative to the capture's bright level (its
 #: 99th percentile): darker light (shadow, black surfaces) is divided by the floor instead,
 #: so its noise is not raised to the lit level.  A floor of 0.05 (a tenth of the bright DC)
@@ -272,6 +272,7 @@ def _flattened_rows(image: NDArray[np.float32], albedo: NDArray[np.float32], win
 
 
 def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
+                    camera_blur: float | None = None,
                     workers: int | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """A capture divided by its albedo for `demodulate_baseband` (see the module docstring):
     `sliscan.demodulate.albedo_estimate` (``"steps"`` with `STEPS_OPTIONS`) times each line's
@@ -287,6 +288,9 @@ def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate
         Found in it (each line's window).
     estimate : str
         One of `sliscan.demodulate.ALBEDO_ESTIMATES`.
+    camera_blur : float, optional
+        The camera's blur (Gaussian sigma, px) the steps are found for; default `STEP_SPREAD`
+        (not measured on the capture: `STEPS_OPTIONS`).
     workers : int, optional
         Threads over the lines (default: `default_workers`).
 
@@ -297,8 +301,9 @@ def normalise_lines(image: NDArray[np.floating], carriers: Carriers, *, estimate
         the flat field (relative: its scale is arbitrary).
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
+    options = STEPS_OPTIONS | ({} if camera_blur is None else {"blur": camera_blur})
     albedo = np.ascontiguousarray(albedo_estimate(img, carriers, estimate=estimate,
-                                                  **(STEPS_OPTIONS if estimate in ("steps", "sharp-steps") else {})))
+                                                  **(options if estimate in ("steps", "sharp-steps") else {})))
     windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (img.shape[0],)), dtype=np.intp)
     scale = max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
     out = np.empty_like(img)

@@ -162,13 +162,15 @@ _overwrite_option = click.option("--overwrite", is_flag=True,
 
 
 def _scan_choices_options(command: Callable) -> Callable:
-    """``--decisions``, ``--albedo-steps/--no-albedo-steps``, ``--stripe-lines/--stripe-centres`` and
-    ``--trim-edges``, handed to `command` as one ``choices`` `ScanChoices` argument."""
+    """``--decisions``, ``--albedo-steps/--no-albedo-steps``, ``--stripe-lines/--stripe-centres``,
+    ``--trim-edges`` and ``--camera-blur``, handed to `command` as one ``choices`` `ScanChoices`
+    argument."""
 
     @functools.wraps(command)
     def with_choices(*args: Any, decisions: str, albedo_steps: bool, stripe_lines: bool, trim_edges: int,
-                     **kwargs: Any) -> Any:
-        return command(*args, choices=ScanChoices(decisions, albedo_steps, stripe_lines, trim_edges), **kwargs)
+                     camera_blur: float | None, **kwargs: Any) -> Any:
+        return command(*args, choices=ScanChoices(decisions, albedo_steps, stripe_lines, trim_edges, camera_blur),
+                       **kwargs)
 
     return _options(
         click.option("--decisions", type=click.Choice(list(DECISIONS)), default="auto", show_default=True,
@@ -187,6 +189,10 @@ def _scan_choices_options(command: Callable) -> Callable:
                      help="Drop the points within PX camera pixels of a depth or shadow edge, a gap or the frame's "
                           "edge along the carriers, where the demodulation windows reach across it: fewer points, "
                           "lower RMS (e.g. 10 at 5 MP; docs/accuracy.md)."),
+        click.option("--camera-blur", type=click.FloatRange(min=0, min_open=True), default=None, metavar="PX",
+                     help="The camera's blur (Gaussian sigma, camera pixels) the albedo steps are found and "
+                          "blurred with [default: measured on each capture's albedo edges; 1 with --method "
+                          "baseband]."),
     )(with_choices)
 
 

@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 
 from sliscan._threads import default_workers, over_rows
 from sliscan._validate import InputError, check_image
+from sliscan.edge_blur import BLUR_HEIGHT, edge_blur
 from sliscan.types import PatternSpec
 
 
@@ -833,7 +834,8 @@ def _fit_lines(img: NDArray[np.float32], omegas: NDArray[np.float64], windows: N
 
 def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adaptive: bool = True,
                       albedo: str | None = "steps", ramped: range | None = None, follow_scale: bool = True,
-                      centred: bool = False, workers: int | None = None) -> Demodulated:
+                      centred: bool = False, camera_blur: float | None = None,
+                      workers: int | None = None) -> Demodulated:
     """Carrier amplitudes by a sliding-window least-squares fit with edge-aware placement.
 
     The capture is first divided by the sharp steps of its albedo (`normalise_albedo`), which
@@ -887,7 +889,8 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     h, w = img.shape
     gain = None
     if albedo is not None:
-        img, gain = normalise_albedo(img, carriers, estimate=albedo)
+        steps = albedo in ("steps", "sharp-steps")
+        img, gain = normalise_albedo(img, carriers, estimate=albedo, **({"blur": camera_blur} if steps else {}))
     short = _short_window(carriers)
     windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (h,)), dtype=np.intp)
     if windows.max() > w:
@@ -1121,8 +1124,22 @@ STEP_SPAN = 6
 #: (sliscan's pattern) and 2.3 (the thesis's) points more completeness at 1296x972 (up to 3.2
 #: and 4.7 on the cylinder), 0.1-1.9 at 5 MP, nothing on a smooth albedo; a blur of 0.7 px
 #: gives 85 % of it.  The phase channel keeps the sharp steps (`demodulate`): its fringe's
-#: precision lost there.
+#: precision lost there.  `STEP_SPREAD` is also the blur the sharpness and concentration tests
+#: assume (`_edge_share`, `_sharp_share`) unless the capture shows a blurrier camera.
 STEP_SPREAD = 1.0
+#: The camera's blur is measured on each capture's flat steps (`sliscan.edge_blur`); a blur over
+#: `STEP_BLUR_BAND` times `STEP_SPREAD` replaces it (in the tests and the soft edges), and the
+#: steps are found again.  A 1 px camera measures 1.03-1.06 px (the pixels' aperture adds
+#: ``1 / 12`` to the variance), so nothing changes there.  A camera blurred by 2 px lost most of
+#: its steps to the sharpness test (an edge blurred by 2 px changes across a third of the box
+#: only 0.50 of its change across the box, where 1 px gives 0.72 and the test asks 0.5): 1296x972,
+#: 40 mm checker of 0.25 / 0.9, seed 3, sphere / steps / cylinder / objects, sliscan's pattern
+#: 85.8 / 93.0 / 84.5 / 82.7 % complete with it, 92.7 / 96.7 / 92.0 / 92.1 % with the measured
+#: blur (docs/accuracy.md, "A camera blurrier than assumed"; at 5 MP the gain is 0.1-2.6 points
+#: and the thesis pattern's checkered steps lost RMS to steps at its stripe borders).  A sharper
+#: camera keeps `STEP_SPREAD`: soft edges of 0.5 px lost 0.5-0.8 points on the cylinder of a
+#: 0.5 px camera.
+STEP_BLUR_BAND = 1.15
 STEP_FLAT = 0.15
 
 
@@ -1201,12 +1218,12 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 @numba.njit(cache=True, nogil=True)
 def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, sharpness: float,
-                flat_below: float, least_share: float, soft: bool, kept: NDArray[np.intp],
+                flat_below: float, least_share: float, judge_flat: bool, kept: NDArray[np.intp],
                 heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
     `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
-    `soft` whether the lag ratio is flat over the span the height was measured on into `flat`
-    (`STEP_FLAT`; False for all without); `threshold`, `sharpness` and `flat_below` as in
+    `judge_flat` whether the lag ratio is flat over the span the height was measured on into
+    `flat` (`STEP_FLAT`; False for all without); `threshold`, `sharpness` and `flat_below` as in
     `_albedo_steps`, `least_share` its `concentration` times `_edge_share` (the least change
     across the boxes per unit of height, up to `STEP_ENOUGH`); returns how many."""
     w = line.size
@@ -1254,10 +1271,11 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
             concentrated = abs(evidence[x]) >= min(least_share * abs(height), STEP_ENOUGH)
             if (steady or not one_sided[x]) and abs(height) >= STEP_HEIGHT * threshold and concentrated:
                 tall = abs(height) >= STEP_HEIGHT * flat_below
-                is_flat = (soft or not tall) and _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height)
+                is_flat = (judge_flat or not tall) and (
+                    _ratio_spread(line, logs, t, floor, lo, hi) <= STEP_FLAT * abs(height))
                 if tall or is_flat:
                     kept[n_kept], heights[n_kept] = x, height
-                    flat[n_kept] = soft and is_flat
+                    flat[n_kept] = judge_flat and is_flat
                     n_kept += 1
     return n_kept
 
@@ -1279,17 +1297,18 @@ def _ratio_spread(line: NDArray[np.float32], logs: NDArray[np.float64], t: int, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], ahead_flat: NDArray[np.bool_],
+def _two_way_steps(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], ahead_flat: NDArray[np.bool_],
                    n_ahead: int, back: NDArray[np.intp], back_h: NDArray[np.float64], back_flat: NDArray[np.bool_],
-                   n_back: int, box: int, spread: float, out: NDArray[np.float32]) -> None:
-    """The relative albedo of one line ``(W,)`` into `out`, from the steps found reading it
-    left to right (`ahead`, ascending pixels, log heights `ahead_h`, flat ratios `ahead_flat`)
-    and right to left (`back`: pixels of the reversed line, ascending there, with their heights
-    and flatness there): every step found either way, the two heights averaged where both found
-    one within `box` px, flat if either way's ratio is; the flat ones blurred (`_soften_steps`)."""
-    w = out.size
-    delta = np.zeros(w)
-    flat = np.zeros(w, np.bool_)
+                   n_back: int, box: int, delta: NDArray[np.float32], flat: NDArray[np.bool_]) -> None:
+    """The steps of one line ``(W,)``: their log heights into `delta` (0 elsewhere) and whether
+    each is flat into `flat`, from the steps found reading it left to right (`ahead`, ascending
+    pixels, log heights `ahead_h`, flat ratios `ahead_flat`) and right to left (`back`: pixels
+    of the reversed line, ascending there, with their heights and flatness there): every step
+    found either way, the two heights averaged where both found one within `box` px, flat if
+    either way's ratio is."""
+    w = delta.size
+    delta[:] = 0.0
+    flat[:] = False
     used = np.zeros(n_back, np.bool_)
     k = n_back - 1  # the reversed line's steps from the right end: ascending pixels here
     for i in range(n_ahead):
@@ -1313,18 +1332,27 @@ def _two_way_level(ahead: NDArray[np.intp], ahead_h: NDArray[np.float64], ahead_
         if not used[m]:  # a step up read right to left is a step down read left to right
             delta[w - back[m]] -= back_h[m]
             flat[w - back[m]] |= back_flat[m]
-    total, level = 0.0, 1.0
-    for x in range(w):
-        if delta[x] != 0.0:
-            total += delta[x]
-            level = np.exp(total)
-        out[x] = level
-    if spread > 0:
-        _soften_steps(delta, flat, spread, out)
 
 
 @numba.njit(cache=True, nogil=True)
-def _soften_steps(delta: NDArray[np.float64], flat: NDArray[np.bool_], spread: float,
+def _levels_rows(delta: NDArray[np.float32], flat: NDArray[np.bool_], spread: float, rows: NDArray[np.intp],
+                 out: NDArray[np.float32]) -> None:
+    """The relative albedo of the given `rows` into `out` ``(H, W)``: the running sum of the
+    steps' log heights `delta` ``(H, W)`` (1 left of the first), those that are `flat` blurred
+    by a Gaussian of `spread` px (`_soften_steps`; 0: none)."""
+    for r in rows:
+        total, level = 0.0, 1.0
+        for x in range(out.shape[1]):
+            if delta[r, x] != 0.0:
+                total += delta[r, x]
+                level = np.exp(total)
+            out[r, x] = level
+        if spread > 0:
+            _soften_steps(delta[r], flat[r], spread, out[r])
+
+
+@numba.njit(cache=True, nogil=True)
+def _soften_steps(delta: NDArray[np.float32], flat: NDArray[np.bool_], spread: float,
                   out: NDArray[np.float32]) -> None:
     """Blur the steps of one line's relative albedo `out` ``(W,)`` (log heights `delta` at their
     pixels) that are `flat` by a Gaussian of `spread` px: each such step becomes ``a0 + (a1 -
@@ -1365,11 +1393,21 @@ def _bright_side_shift(height: float, spread: float) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
+def _sharp_share(box: int, blur: float) -> float:
+    """The share of its change across boxes of `box` px by which an edge blurred by a Gaussian
+    of `blur` px changes across boxes of a third of that (at least 2 px): `_is_sharp`'s ratio
+    for an albedo edge (0.72 at 6 px boxes and 1 px, 0.50 at 2 px)."""
+    return _edge_share(max(2, box // 3), blur) / _edge_share(box, blur)
+
+
+@numba.njit(cache=True, nogil=True)
 def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, threshold: float,
-                       sharpness: float, flat_below: float, concentration: float, both_ways: bool, spread: float,
-                       rows: NDArray[np.intp], out: NDArray[np.float32]) -> None:
-    """`_albedo_steps` on the given `rows` of `img` ``(H, W)``, into `out` ``(H, W)``; `windows`
-    per row."""
+                       sharpness: float, flat_below: float, concentration: float, both_ways: bool, blur: float,
+                       judge_flat: bool, rows: NDArray[np.intp], delta: NDArray[np.float32],
+                       flat: NDArray[np.bool_]) -> None:
+    """The steps `_albedo_steps` finds on the given `rows` of `img` ``(H, W)`` (`windows` per
+    row), for a camera blur of `blur` px: their log heights into `delta` ``(H, W)`` (0
+    elsewhere) and, with `judge_flat`, whether each is flat into `flat` ``(H, W)``."""
     w = img.shape[1]
     reversed_line = np.empty(w, np.float32)
     ahead, back = np.empty(w, np.intp), np.empty(w, np.intp)
@@ -1378,25 +1416,27 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
     for r in rows:
         t = windows[r]
         if 3 * t >= w:
-            out[r] = 1.0
+            delta[r] = 0.0
+            flat[r] = False
             continue
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
-        least_share = concentration * _edge_share(box, STEP_SPREAD)
-        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharpness, flat_below, least_share, spread > 0,
+        least_share = concentration * _edge_share(box, blur)
+        sharp = sharpness * _sharp_share(box, blur) / _sharp_share(box, STEP_SPREAD)
+        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharp, flat_below, least_share, judge_flat,
                               ahead, ahead_h, ahead_flat)
         n_back = 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharpness, flat_below, least_share,
-                                 spread > 0, back, back_h, back_flat)
-        _two_way_level(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, spread, out[r])
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharp, flat_below, least_share,
+                                 judge_flat, back, back_h, back_flat)
+        _two_way_steps(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, delta[r], flat[r])
 
 
 def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
                   threshold: float = STEP_THRESHOLD, sharpness: float = STEP_SHARPNESS,
                   flat_below: float = STEP_FLAT_BELOW, concentration: float = STEP_CONCENTRATION,
-                  both_ways: bool = True, spread: float = STEP_SPREAD) -> NDArray[np.float32]:
+                  both_ways: bool = True, blur: float | None = None, soft: bool = True) -> NDArray[np.float32]:
     """Relative albedo made of the sharp steps found along each line (1 left of the first).
 
     Within one code the pattern repeats every window ``T`` along the line, so where the albedo
@@ -1420,22 +1460,41 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     within a window, which may then be rejected in turn; read right to left, each height is
     measured on the span before its step instead, where the misses are others.  Each line is
     read both ways (`_line_steps`): a step found either way is kept, and where both ways found
-    one within a box its height is the mean of the two (`_two_way_level`; `both_ways` False:
+    one within a box its height is the mean of the two (`_two_way_steps`; `both_ways` False:
     left to right only, as until the fourteenth session).  The running sum of
     the heights along the line is the log albedo; a smooth albedo changes ``g`` too slowly to
-    count and is left to the flat field.  The steps over which ``g`` is flat (an albedo edge)
-    are blurred by a Gaussian of `spread` camera pixels, as the camera blurs them (`STEP_SPREAD`;
-    0: every step sharp, as until the forty-fifth session).  Lines in threads (a compiled
-    kernel, `_albedo_steps_rows`).  The constants (`STEP_THRESHOLD` and the others) say what is
-    tested.
+    count and is left to the flat field.  With `soft` the steps over which ``g`` is flat (an
+    albedo edge) are blurred by a Gaussian of the camera's blur, as the camera blurs them
+    (False: every step sharp, as until the forty-fifth session).  Lines in threads (compiled
+    kernels, `_albedo_steps_rows`, `_levels_rows`).  The constants (`STEP_THRESHOLD` and the
+    others) say what is tested.
+
+    The sharpness and concentration tests and the soft edges assume a camera blur of `blur` px
+    (a Gaussian sigma, the pixels' aperture included).  None: measured on the capture's own
+    flat steps (`sliscan.edge_blur.edge_blur`, found with `STEP_SPREAD`); a blur up to
+    `STEP_BLUR_BAND` times `STEP_SPREAD`, a sharper one, or one the capture does not tell
+    (too few tall flat steps) counts as `STEP_SPREAD`; a blurrier one finds the steps again.
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
     floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
+    delta, flat = np.empty(img.shape, dtype=np.float32), np.empty(img.shape, dtype=np.bool_)
+
+    def find(camera_blur: float, judge_flat: bool) -> None:
+        over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness),
+                                                  float(flat_below), float(concentration), both_ways,
+                                                  camera_blur, judge_flat, rows, delta, flat), img.shape[0])
+
+    if blur is None:
+        find(STEP_SPREAD, True)
+        measured = edge_blur(img, windows, flat & (np.abs(delta) >= BLUR_HEIGHT), floor)
+        blur = STEP_SPREAD if measured is None or measured <= STEP_BLUR_BAND * STEP_SPREAD else measured
+        if blur != STEP_SPREAD:
+            find(blur, soft)
+    else:
+        find(float(blur), soft)
     out = np.empty(img.shape, dtype=np.float32)
-    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness), float(flat_below),
-                                              float(concentration), both_ways, float(spread), rows, out),
-              img.shape[0])
+    over_rows(lambda rows: _levels_rows(delta, flat, float(blur) if soft else 0.0, rows, out), img.shape[0])
     return out
 
 
@@ -1466,12 +1525,12 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
 
     Estimates (`estimate`; keyword `options` in brackets):
 
-    * ``"steps"`` (threshold, sharpness, flat_below, concentration, both_ways, spread; see
-      `_albedo_steps`): only the sharp steps, found where the capture stops repeating itself
-      one carrier period later; between them 1, so a smooth albedo is left to the flat field;
-      a step over which that repetition holds (an albedo edge) blurred as the camera blurs it.
-      The only one that helped (issue 8).
-    * ``"sharp-steps"``: the same steps, none blurred (``spread=0``).
+    * ``"steps"`` (threshold, sharpness, flat_below, concentration, both_ways, blur, soft;
+      see `_albedo_steps`): only the sharp steps, found where the capture stops repeating
+      itself one carrier period later; between them 1, so a smooth albedo is left to the flat
+      field; a step over which that repetition holds (an albedo edge) blurred as the camera
+      blurs it (its blur measured on the capture).  The only one that helped (issue 8).
+    * ``"sharp-steps"``: the same steps, none blurred (``soft=False``).
     * ``"closing"`` (size = 1.25 windows): the upper envelope, a morphological closing
       (maximum then minimum filter).  It keeps a step exactly but also every flank of the
       pattern's peaks where the albedo varies within a period: it loses 7 points of stripe
@@ -1495,7 +1554,7 @@ def albedo_estimate(image: NDArray[np.floating], carriers: Carriers, *, estimate
     h, w = img.shape
     windows = np.broadcast_to(carriers.line_windows(), (h,))
     if estimate in ("steps", "sharp-steps"):
-        return _albedo_steps(img, windows, **(options | ({"spread": 0.0} if estimate == "sharp-steps" else {})))
+        return _albedo_steps(img, windows, **(options | ({"soft": False} if estimate == "sharp-steps" else {})))
     floor = np.float32(max(float(img.max()), 1e-6) * 1e-4)
     length = max(3, int(np.ceil(options.get("size", 1.0 if estimate == "guided" else 1.25) * float(windows.max()))))
     if estimate in ("closing", "envelopes"):
@@ -1635,7 +1694,7 @@ def check_exposure(image: NDArray[np.float32]) -> None:
 
 def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = "window",
                carriers: Carriers | None = None, albedo: str | None = "steps",
-               centred: bool = False) -> tuple[Demodulated, Carriers]:
+               centred: bool = False, camera_blur: float | None = None) -> tuple[Demodulated, Carriers]:
     """Detect the carriers (unless given) and demodulate a capture in camera orientation.
 
     Parameters
@@ -1669,8 +1728,8 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
     ramped = range(spec.bits, spec.bits + len(spec.phase_carriers))  # the phase channel's carriers
     if albedo == "steps" and spec.phase_carriers:
         albedo = "sharp-steps"  # blurred steps cost the fringe phase (docs/accuracy.md, "Soft albedo edges")
-    out = (demodulate_window(view, found, albedo=albedo, ramped=ramped, centred=centred) if method == "window"
-           else demodulate_bandpass(view, found))
+    out = (demodulate_window(view, found, albedo=albedo, ramped=ramped, centred=centred, camera_blur=camera_blur)
+           if method == "window" else demodulate_bandpass(view, found))
     if spec.orientation == "columns":
         out = out.mapped(lambda a: np.ascontiguousarray(np.swapaxes(a, -1, -2)))
     return out, found

@@ -274,12 +274,16 @@ class ScanChoices:
     trim_edges : int
         Camera pixels trimmed off each end of every run along the carriers
         (``Scanner.trim_edges``; 0, the default, keeps them).
+    camera_blur : float or None
+        The camera's blur the albedo steps are found and blurred with (``Scanner.camera_blur``;
+        None, the default, measured on each capture).
     """
 
     decisions: str = "auto"
     albedo_steps: bool = True
     stripe_lines: bool = True
     trim_edges: int = 0
+    camera_blur: float | None = None
 
     def scanner_options(self, spec: PatternSpec) -> dict[str, Any]:
         """`Scanner` keyword arguments of these choices for `spec`.
@@ -291,7 +295,7 @@ class ScanChoices:
         """
         return dict(decode_options=decision_options(spec, self.decisions),
                     albedo="steps" if self.albedo_steps else None, interpolate_stripes=self.stripe_lines,
-                    trim_edges=self.trim_edges)
+                    trim_edges=self.trim_edges, camera_blur=self.camera_blur)
 
 
 @dataclass(frozen=True, eq=False)
@@ -417,6 +421,14 @@ class Scanner:
         docs/accuracy.md, "Soft albedo edges"); None for none (the fastest baseband scan, for
         surfaces without sharp texture: docs/speed.md).  The baseband path divides by each
         line's flat field as well (`sliscan.baseband.normalise_lines`).
+    camera_blur : float or None
+        With the ``"steps"`` albedo estimates: the camera's blur (a Gaussian's sigma in camera
+        pixels, the pixels' aperture included) the steps are tested for (an albedo edge is as
+        sharp as the camera blurs it) and blurred with.  None (default): measured on each
+        capture's tall albedo edges on the window path (`sliscan.edge_blur`; a 1 px camera
+        measures 1.03-1.06, within `sliscan.demodulate.STEP_BLUR_BAND` of the 1 px assumed, so
+        nothing changes; a blurrier one is found again with its own blur: docs/accuracy.md, "A
+        camera blurrier than assumed"), 1 px on the baseband path.
 
     Examples
     --------
@@ -447,6 +459,7 @@ class Scanner:
     lines_beside: bool = True
     trim_edges: int = 0
     albedo: str | None = "steps"
+    camera_blur: float | None = None
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
     _tests: dict[tuple[str, float], MeasurableTest] = field(default_factory=dict, init=False, repr=False)
@@ -460,6 +473,8 @@ class Scanner:
             raise InputError(f"trim_edges must be a whole number of pixels >= 0, got {self.trim_edges!r}")
         if self.albedo is not None and self.albedo not in ALBEDO_ESTIMATES:
             raise InputError(f"albedo must be one of {', '.join(ALBEDO_ESTIMATES)} or None, got {self.albedo!r}")
+        if self.camera_blur is not None and not (isinstance(self.camera_blur, (int, float)) and self.camera_blur > 0):
+            raise InputError(f"camera_blur must be a positive number of pixels or None, got {self.camera_blur!r}")
         if self.method == "baseband" and self.spec.kind not in MULTI_FRAME_KINDS:
             if self.spec.phase_carriers:
                 raise InputError("method 'baseband' decodes stripes only; a pattern with a phase channel needs the "
@@ -483,7 +498,7 @@ class Scanner:
         img = check_image("capture", image, shape=self.calibration.camera.shape)
         demod, found = demodulate(img, self.spec, method=self.method, carriers=self._known_carriers(),
                                   albedo=self.albedo, centred=self.interpolate_stripes and self.centred_borders
-                                  and self.method == "window")
+                                  and self.method == "window", camera_blur=self.camera_blur)
         self._keep_carriers(found)
         return demod, found
 
@@ -513,7 +528,7 @@ class Scanner:
             self._plan = carriers, BasebandPlan.of(*view.shape, carriers)
         gain = None
         if self.albedo is not None:
-            view, gain = normalise_lines(view, carriers, estimate=self.albedo)
+            view, gain = normalise_lines(view, carriers, estimate=self.albedo, camera_blur=self.camera_blur)
         return demodulate_baseband(view, self._plan[1], albedo=gain), carriers
 
     def stripe_geometry(self) -> fastscan.StripeGeometry:
