@@ -343,3 +343,9 @@ def test_trim_edges_trims_the_run_ends_and_most_of_the_error_near_the_edges(smal
 def test_trim_edges_must_be_whole_pixels(small_rig, margin):
     with pytest.raises(InputError, match="trim_edges"):
         Scanner(patterns.thesis_spec((1024, 768)), small_rig.calibration, trim_edges=margin)
+
+
+@pytest.mark.parametrize("blur", [0, -1.0, "2", True])
+def test_camera_blur_must_be_a_positive_number(small_rig, blur):
+    with pytest.raises(InputError, match="camera_blur"):
+        Scanner(patterns.default_spec((1024, 768)), small_rig.calibration, camera_blur=blur)

@@ -473,7 +473,8 @@ class Scanner:
             raise InputError(f"trim_edges must be a whole number of pixels >= 0, got {self.trim_edges!r}")
         if self.albedo is not None and self.albedo not in ALBEDO_ESTIMATES:
             raise InputError(f"albedo must be one of {', '.join(ALBEDO_ESTIMATES)} or None, got {self.albedo!r}")
-        if self.camera_blur is not None and not (isinstance(self.camera_blur, (int, float)) and self.camera_blur > 0):
+        if self.camera_blur is not None and (isinstance(self.camera_blur, bool)
+                                             or not (isinstance(self.camera_blur, (int, float)) and self.camera_blur > 0)):
             raise InputError(f"camera_blur must be a positive number of pixels or None, got {self.camera_blur!r}")
         if self.method == "baseband" and self.spec.kind not in MULTI_FRAME_KINDS:
             if self.spec.phase_carriers:
