@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.ndimage
+import scipy.special
 
 from sliscan import patterns, simulate
 from sliscan.demodulate import STEP_BLUR_BAND, STEP_SPREAD, _albedo_steps, detect_carriers

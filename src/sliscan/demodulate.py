@@ -876,6 +876,9 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
         carriers there.
     centred : bool
         Also keep every pixel's centred window's envelopes (`Demodulated.centred`).
+    camera_blur : float, optional
+        With the ``"steps"`` estimates: the camera's blur (px) the steps are found for and
+        blurred with (`_albedo_steps`' `blur`); None measures it on the capture.
     workers : int, optional
         Threads fitting lines in parallel (default: `default_workers`).
 
@@ -889,8 +892,8 @@ def demodulate_window(image: NDArray[np.floating], carriers: Carriers, *, adapti
     h, w = img.shape
     gain = None
     if albedo is not None:
-        steps = albedo in ("steps", "sharp-steps")
-        img, gain = normalise_albedo(img, carriers, estimate=albedo, **({"blur": camera_blur} if steps else {}))
+        by_steps = albedo in ("steps", "sharp-steps")
+        img, gain = normalise_albedo(img, carriers, estimate=albedo, **({"blur": camera_blur} if by_steps else {}))
     short = _short_window(carriers)
     windows = np.ascontiguousarray(np.broadcast_to(carriers.line_windows(), (h,)), dtype=np.intp)
     if windows.max() > w:
@@ -1713,6 +1716,9 @@ def demodulate(image: NDArray[np.floating], spec: PatternSpec, *, method: str = 
         with a phase channel (its fringe's phase lost where the steps were blurred).
     centred : bool
         ``"window"`` only: also every pixel's centred window's envelopes (`Demodulated.centred`).
+    camera_blur : float, optional
+        ``"window"`` only: the camera's blur for the albedo steps (`demodulate_window`); None
+        measures it on the capture.
 
     Returns
     -------
