@@ -84,7 +84,8 @@ def _one_way_steps(img: NDArray[np.float32], windows: NDArray[np.intp], threshol
         short = (_ratio_means(cum_g, cum_w, at, np.minimum(at + inner, w))
                  - _ratio_means(cum_g, cum_w, np.maximum(at - inner, 0), at))
         full = np.take_along_axis(change, at, axis=1)
-        sharp = (short * full > 0) & (np.abs(short) >= sharpness * np.abs(full))
+        need = np.where(one_sided, max(sharpness, STEP_SHARPNESS), sharpness)  # one view: as for 1 px
+        sharp = (short * full > 0) & (np.abs(short) >= need * np.abs(full))
         candidate = (strength >= STEP_FIND * threshold) & (strength >= largest) & sharp
         # one per box: a candidate within `box` after another one is a tie, and the first wins
         count = np.hstack([np.zeros((rows.size, box + 1), np.intp), np.cumsum(candidate, axis=1)])

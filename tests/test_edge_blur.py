@@ -76,7 +76,7 @@ def test_a_blurrier_camera_is_measured_and_its_steps_found(blurry_checkered_sphe
     """A camera blurred by 2 px measures 1.99 px on the capture's tall steps (2.02 with the pixels'
     aperture), over `STEP_BLUR_BAND` times `STEP_SPREAD`; with it the detector finds the albedo
     edges the 1 px sharpness test rejects, and the scan decodes more: measured 72.5 -> 84.3 %
-    complete, 70.0 -> 82.3 % right stripes, stripes more than one off 0.15 -> 0.21 % (the
+    complete, 70.0 -> 82.2 % right stripes, stripes more than one off 0.15 -> 0.21 % (the
     margins: 5 points, 0.5 %)."""
     rig, spec, capture = blurry_checkered_sphere
     img = capture.image.astype(np.float32) / 255

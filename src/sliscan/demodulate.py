@@ -1137,11 +1137,12 @@ STEP_SPREAD = 1.0
 #: its steps to the sharpness test (an edge blurred by 2 px changes across a third of the box
 #: only 0.50 of its change across the box, where 1 px gives 0.72 and the test asks 0.5): 1296x972,
 #: 40 mm checker of 0.25 / 0.9, seed 3, sphere / steps / cylinder / objects, sliscan's pattern
-#: 85.8 / 93.0 / 84.5 / 82.7 % complete with it, 92.7 / 96.7 / 92.0 / 92.1 % with the measured
-#: blur (docs/accuracy.md, "A camera blurrier than assumed"; at 5 MP the gain is 0.1-2.6 points
-#: and the thesis pattern's checkered steps lost RMS to steps at its stripe borders).  A sharper
-#: camera keeps `STEP_SPREAD`: soft edges of 0.5 px lost 0.5-0.8 points on the cylinder of a
-#: 0.5 px camera.
+#: 85.8 / 93.0 / 84.5 / 82.7 % complete with it, 91.4 / 97.1 / 90.7 / 90.4 % with the measured
+#: blur (docs/accuracy.md, "A camera blurrier than assumed"; at 5 MP +0.4 to +2.1 points).
+#: Within a window of a line's end, where a step has one view, the sharpness test stays as for
+#: 1 px: looser there, it let in a step that flipped the thesis pattern's top bit over 7,000 px
+#: at a 5 MP frame's end (gross outliers 0.02 -> 0.17 %).  A sharper camera keeps
+#: `STEP_SPREAD`: soft edges of 0.5 px lost 0.5-0.8 points on the cylinder of a 0.5 px camera.
 STEP_BLUR_BAND = 1.15
 STEP_FLAT = 0.15
 
@@ -1221,13 +1222,14 @@ def _step_evidence(change: NDArray[np.float64], usable: NDArray[np.bool_], t: in
 
 @numba.njit(cache=True, nogil=True)
 def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, threshold: float, sharpness: float,
-                flat_below: float, least_share: float, judge_flat: bool, kept: NDArray[np.intp],
-                heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
+                end_sharpness: float, flat_below: float, least_share: float, judge_flat: bool,
+                kept: NDArray[np.intp], heights: NDArray[np.float64], flat: NDArray[np.bool_]) -> int:
     """The albedo steps found along one `line` ``(W,)`` read left to right (window `t`, box
     `box` px): their pixels into `kept` (ascending), log heights into `heights`, and with
     `judge_flat` whether the lag ratio is flat over the span the height was measured on into
     `flat` (`STEP_FLAT`; False for all without); `threshold`, `sharpness` and `flat_below` as in
-    `_albedo_steps`, `least_share` its `concentration` times `_edge_share` (the least change
+    `_albedo_steps` (`end_sharpness` the sharpness asked of a step with one view, within a
+    window of the line's ends), `least_share` its `concentration` times `_edge_share` (the least change
     across the boxes per unit of height, up to `STEP_ENOUGH`); returns how many."""
     w = line.size
     cum_g, cum_w = np.zeros(w + 1), np.zeros(w + 1)
@@ -1255,7 +1257,8 @@ def _line_steps(line: NDArray[np.float32], t: int, box: int, floor: float, thres
             largest = 0.0
             for k in range(max(x - box, 0), min(x + box + 1, w)):
                 largest = max(largest, abs(evidence[k]))
-            if s >= largest and _is_sharp(cum_g, cum_w, change, x if usable[x] else x + t, box, sharpness):
+            need = end_sharpness if one_sided[x] else sharpness
+            if s >= largest and _is_sharp(cum_g, cum_w, change, x if usable[x] else x + t, box, need):
                 found[n_found] = x
                 n_found += 1
     n_kept = 0
@@ -1425,14 +1428,15 @@ def _albedo_steps_rows(img: NDArray[np.float32], windows: NDArray[np.intp], floo
         box = max(STEP_MIN_BOX, int(round(STEP_BOX * t)))
         least_share = concentration * _edge_share(box, blur)
         sharp = sharpness * _sharp_share(box, blur) / _sharp_share(box, STEP_SPREAD)
-        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharp, flat_below, least_share, judge_flat,
-                              ahead, ahead_h, ahead_flat)
+        end_sharp = max(sharp, sharpness)  # one view only: no looser than for a 1 px camera
+        n_ahead = _line_steps(img[r], t, box, floor, threshold, sharp, end_sharp, flat_below, least_share,
+                              judge_flat, ahead, ahead_h, ahead_flat)
         n_back = 0
         if both_ways:
             for x in range(w):
                 reversed_line[x] = img[r, w - 1 - x]
-            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharp, flat_below, least_share,
-                                 judge_flat, back, back_h, back_flat)
+            n_back = _line_steps(reversed_line, t, box, floor, threshold, sharp, end_sharp, flat_below,
+                                 least_share, judge_flat, back, back_h, back_flat)
         _two_way_steps(ahead, ahead_h, ahead_flat, n_ahead, back, back_h, back_flat, n_back, box, delta[r], flat[r])
 
 
@@ -1476,7 +1480,9 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     (a Gaussian sigma, the pixels' aperture included).  None: measured on the capture's own
     flat steps (`sliscan.edge_blur.edge_blur`, found with `STEP_SPREAD`); a blur up to
     `STEP_BLUR_BAND` times `STEP_SPREAD`, a sharper one, or one the capture does not tell
-    (too few tall flat steps) counts as `STEP_SPREAD`; a blurrier one finds the steps again.
+    (too few tall flat steps) counts as `STEP_SPREAD`; a blurrier one finds the steps again
+    (the sharpness asked of a step with one view, near a line's end, no looser than for
+    `STEP_SPREAD`).
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
