@@ -9,7 +9,7 @@ import scipy.ndimage
 import scipy.special
 
 from sliscan import patterns, simulate
-from sliscan.demodulate import STEP_BLUR_BAND, STEP_SPREAD, _albedo_steps, detect_carriers
+from sliscan.demodulate import STEP_BLUR_BAND, STEP_SPREAD, _albedo_steps, camera_blur
 from sliscan.edge_blur import BLUR_STEPS, edge_blur, fit_blurred_edges
 from sliscan.evaluate import accuracy
 from sliscan.pipeline import Scanner
@@ -61,6 +61,15 @@ def test_fit_blurred_edges_is_exact_on_noise_free_profiles():
     assert np.all(misfit < 1e-4)
 
 
+def test_camera_blur_of_a_smooth_albedo_is_not_told(small_rig):
+    """A smooth albedo has no edges to measure the blur on: None (its ~100 steps, none an edge,
+    are too few), and the albedo steps keep 1 px."""
+    spec = patterns.default_spec((1024, 768))
+    conditions = simulate.Conditions(albedo=simulate.SmoothAlbedo(low=0.15, high=1.0, seed=1), seed=1)
+    capture = simulate.render(small_rig, simulate.sphere_scene(), patterns.render_pattern(spec), conditions)
+    assert camera_blur(capture.image, spec) is None
+
+
 @pytest.fixture(scope="module")
 def blurry_checkered_sphere():
     """The 960x720 rig's sphere under a 40 mm 0.25 / 0.9 checker seen by a camera blurred by
@@ -79,13 +88,7 @@ def test_a_blurrier_camera_is_measured_and_its_steps_found(blurry_checkered_sphe
     complete, 70.0 -> 82.2 % right stripes, stripes more than one off 0.15 -> 0.21 % (the
     margins: 5 points, 0.5 %)."""
     rig, spec, capture = blurry_checkered_sphere
-    img = capture.image.astype(np.float32) / 255
-    windows = np.broadcast_to(detect_carriers(img, spec).line_windows(), (img.shape[0],))
-    sharp = _albedo_steps(img, windows, blur=STEP_SPREAD, soft=False)
-    tall = np.zeros(img.shape, bool)
-    tall[:, 1:] = np.abs(np.diff(np.log(sharp), axis=1)) >= 0.5
-    floor = 0.01 * float(np.percentile(img[::4, ::4], 99))
-    measured = edge_blur(img, windows, tall, floor)
+    measured = camera_blur(capture.image, spec)
     assert measured == pytest.approx(np.sqrt(4 + 1 / 12), abs=0.15)
     assert measured > STEP_BLUR_BAND * STEP_SPREAD
 

@@ -1486,25 +1486,70 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     """
     img = np.ascontiguousarray(img, dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(windows, (img.shape[0],)), dtype=np.intp)
-    floor = 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
-    delta, flat = np.empty(img.shape, dtype=np.float32), np.empty(img.shape, dtype=np.bool_)
-
-    def find(camera_blur: float, judge_flat: bool) -> None:
-        over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness),
-                                                  float(flat_below), float(concentration), both_ways,
-                                                  camera_blur, judge_flat, rows, delta, flat), img.shape[0])
-
+    floor = _step_floor(img)
+    find = functools.partial(_find_steps, img, windows, floor, threshold=threshold, sharpness=sharpness,
+                             flat_below=flat_below, concentration=concentration, both_ways=both_ways)
     if blur is None:
-        find(STEP_SPREAD, True)
+        delta, flat = find(STEP_SPREAD, True)
         measured = edge_blur(img, windows, flat & (np.abs(delta) >= BLUR_HEIGHT), floor)
         blur = STEP_SPREAD if measured is None or measured <= STEP_BLUR_BAND * STEP_SPREAD else measured
         if blur != STEP_SPREAD:
-            find(blur, soft)
+            delta, flat = find(blur, soft)
     else:
-        find(float(blur), soft)
+        delta, flat = find(float(blur), soft)
     out = np.empty(img.shape, dtype=np.float32)
     over_rows(lambda rows: _levels_rows(delta, flat, float(blur) if soft else 0.0, rows, out), img.shape[0])
     return out
+
+
+def _step_floor(img: NDArray[np.float32]) -> float:
+    """The albedo-step detector's floor: intensities under 1 % of the capture's bright level
+    (its 99th percentile) count as it."""
+    return 0.01 * max(float(np.percentile(img[::4, ::4], 99)), 1e-6)
+
+
+def _find_steps(img: NDArray[np.float32], windows: NDArray[np.intp], floor: float, blur: float, judge_flat: bool, *,
+                threshold: float = STEP_THRESHOLD, sharpness: float = STEP_SHARPNESS,
+                flat_below: float = STEP_FLAT_BELOW, concentration: float = STEP_CONCENTRATION,
+                both_ways: bool = True) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """The albedo steps of every line of `img` ``(H, W)`` (float32, lines along axis 1;
+    `windows` ``(H,)`` intp) for a camera blur of `blur` px (`_albedo_steps_rows`): their log
+    heights ``(H, W)`` float32 (0 elsewhere) and, with `judge_flat`, which are flat ``(H, W)``."""
+    delta, flat = np.empty(img.shape, dtype=np.float32), np.empty(img.shape, dtype=np.bool_)
+    over_rows(lambda rows: _albedo_steps_rows(img, windows, floor, threshold, float(sharpness), float(flat_below),
+                                              float(concentration), both_ways, blur, judge_flat, rows, delta, flat),
+              img.shape[0])
+    return delta, flat
+
+
+def camera_blur(image: NDArray[np.floating], spec: PatternSpec, carriers: Carriers | None = None) -> float | None:
+    """The camera's blur measured on a composite-pattern capture's albedo edges, as the window
+    demodulator measures it before dividing them out (`_albedo_steps`, `sliscan.edge_blur`).
+
+    Parameters
+    ----------
+    image : (H, W) array
+        The camera frame (uint8, uint16 or float in [0, 1]).
+    spec : PatternSpec
+        What was projected.
+    carriers : Carriers, optional
+        Found in it earlier (else detected).
+
+    Returns
+    -------
+    float or None
+        A Gaussian's sigma in camera pixels (the pixels' aperture included: a camera blurred by
+        1 px reads about 1.04), or None where the capture has too few tall albedo edges to tell
+        (a smooth or uniform surface).  The albedo steps assume 1 px unless it is over
+        `STEP_BLUR_BAND` px; a camera much blurrier than 2 px also loses the finest carriers.
+    """
+    img = check_image("capture", image)
+    found = carriers if carriers is not None else detect_carriers(img, spec)
+    view = np.ascontiguousarray(along_carriers(img, spec), dtype=np.float32)
+    windows = np.ascontiguousarray(np.broadcast_to(found.line_windows(), (view.shape[0],)), dtype=np.intp)
+    floor = _step_floor(view)
+    delta, flat = _find_steps(view, windows, floor, STEP_SPREAD, True)
+    return edge_blur(view, windows, flat & (np.abs(delta) >= BLUR_HEIGHT), floor)
 
 
 def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
