@@ -246,6 +246,8 @@ def test_scan_report_option_writes_the_page(run: Path) -> None:
     assert "capture.png" in page and "window" in page
     # the virtual rig is level: its rows run along the camera's (`pipeline.stripe_tilt_deg`)
     assert "the projector&#x27;s rows cross the camera&#x27;s at up to 0.0 degrees" in page
+    # a uniform albedo has no edges to measure the camera's blur on (`demodulate.camera_blur`)
+    assert "not told (too few tall albedo edges); the albedo steps found for 1 px" in page
 
 
 def test_report_command_with_truth(run: Path, tmp_path: Path) -> None:

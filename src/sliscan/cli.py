@@ -41,6 +41,7 @@ from sliscan import report as report_module
 from sliscan._validate import InputError, read_image, write_image, write_images
 from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
                                calibrate_points, calibrate_target, target_residuals)
+from sliscan.demodulate import STEP_BLUR_BAND, STEP_SPREAD, camera_blur
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
@@ -1025,11 +1026,28 @@ def _write_scan_report(path: Path, inputs: _ScanInputs, result: ScanResult, stag
         facts["stripe tilt"] = (f"the projector's {spec.orientation} cross the camera's at up to "
                                 f"{stripe_tilt_deg(inputs.calib, spec.orientation):.1f} degrees "
                                 f"(keep under {MAX_STRIPE_TILT_DEG:g})")
+        facts["camera blur"] = _describe_camera_blur(inputs, stages)
     frames = np.stack(inputs.frames)
     page = report_module.scan_page(report_module.ScanReport(
         frames=frames, spec=spec, calibration=inputs.calib, result=result, stages=stages,
         method=inputs.scanner.method, truth=truth, timings=timings, facts=facts, max_points=max_points))
     report_module.write_page(path, page)
+
+
+def _describe_camera_blur(inputs: _ScanInputs, stages: ScanStages) -> str:
+    """The report's line on the camera's blur: what the capture's albedo edges measure
+    (`sliscan.demodulate.camera_blur`) and what the scan's albedo steps assumed."""
+    measured = camera_blur(inputs.frames[0], inputs.spec, stages.carriers)
+    if inputs.scanner.camera_blur is not None:
+        used = f"the albedo steps found for {inputs.scanner.camera_blur:g} px (--camera-blur)"
+    elif inputs.scanner.method == "baseband":
+        used = f"the albedo steps found for {STEP_SPREAD:g} px (baseband)"
+    elif measured is not None and measured > STEP_BLUR_BAND * STEP_SPREAD:
+        used = "the albedo steps found for it"
+    else:
+        used = f"the albedo steps found for {STEP_SPREAD:g} px"
+    seen = "not told (too few tall albedo edges)" if measured is None else f"{measured:.2f} px on the albedo edges"
+    return f"{seen}; {used}"
 
 
 #: The calibration options of `sliscan scan`: --calibration, --camera-matrix, --projector-matrix.
