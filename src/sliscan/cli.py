@@ -41,7 +41,7 @@ from sliscan import report as report_module
 from sliscan._validate import InputError, read_image, write_image, write_images
 from sliscan.calibrate import (MIN_BOARD_VIEWS, BoardView, Residuals, board_view, calibrate_board,
                                calibrate_points, calibrate_target, target_residuals)
-from sliscan.demodulate import STEP_BLUR_BAND, STEP_SPREAD, camera_blur
+from sliscan.demodulate import STEP_SPREAD, camera_blur, steps_blur
 from sliscan.figures import plot_residuals, require_matplotlib
 from sliscan.formats import mat5, premat5
 from sliscan.formats.calibration import load_calibration, write_matrix_txt
@@ -1042,7 +1042,7 @@ def _describe_camera_blur(inputs: _ScanInputs, stages: ScanStages) -> str:
         used = f"the albedo steps found for {inputs.scanner.camera_blur:g} px (--camera-blur)"
     elif inputs.scanner.method == "baseband":
         used = f"the albedo steps found for {STEP_SPREAD:g} px (baseband)"
-    elif measured is not None and measured > STEP_BLUR_BAND * STEP_SPREAD:
+    elif steps_blur(measured) != STEP_SPREAD:
         used = "the albedo steps found for it"
     else:
         used = f"the albedo steps found for {STEP_SPREAD:g} px"

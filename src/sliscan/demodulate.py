@@ -1490,9 +1490,8 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     find = functools.partial(_find_steps, img, windows, floor, threshold=threshold, sharpness=sharpness,
                              flat_below=flat_below, concentration=concentration, both_ways=both_ways)
     if blur is None:
-        delta, flat = find(STEP_SPREAD, True)
-        measured = edge_blur(img, windows, flat & (np.abs(delta) >= BLUR_HEIGHT), floor)
-        blur = STEP_SPREAD if measured is None or measured <= STEP_BLUR_BAND * STEP_SPREAD else measured
+        delta, flat, measured = _steps_and_blur(find, img, windows, floor)
+        blur = steps_blur(measured)
         if blur != STEP_SPREAD:
             delta, flat = find(blur, soft)
     else:
@@ -1500,6 +1499,12 @@ def _albedo_steps(img: NDArray[np.float32], windows: NDArray[np.intp], *,
     out = np.empty(img.shape, dtype=np.float32)
     over_rows(lambda rows: _levels_rows(delta, flat, float(blur) if soft else 0.0, rows, out), img.shape[0])
     return out
+
+
+def steps_blur(measured: float | None) -> float:
+    """The camera blur (px) the albedo steps are found and blurred for, given the one a capture
+    measures (`camera_blur`): `STEP_SPREAD` unless it is over `STEP_BLUR_BAND` times that."""
+    return STEP_SPREAD if measured is None or measured <= STEP_BLUR_BAND * STEP_SPREAD else measured
 
 
 def _step_floor(img: NDArray[np.float32]) -> float:
@@ -1520,6 +1525,15 @@ def _find_steps(img: NDArray[np.float32], windows: NDArray[np.intp], floor: floa
                                               float(concentration), both_ways, blur, judge_flat, rows, delta, flat),
               img.shape[0])
     return delta, flat
+
+
+def _steps_and_blur(find: Callable[[float, bool], tuple[NDArray[np.float32], NDArray[np.bool_]]],
+                    img: NDArray[np.float32], windows: NDArray[np.intp],
+                    floor: float) -> tuple[NDArray[np.float32], NDArray[np.bool_], float | None]:
+    """The steps `find` (`_find_steps` with its options bound) finds for `STEP_SPREAD`, which
+    are flat, and the camera blur their tall flat ones measure (`edge_blur`; None: too few)."""
+    delta, flat = find(STEP_SPREAD, True)
+    return delta, flat, edge_blur(img, windows, flat & (np.abs(delta) >= BLUR_HEIGHT), floor)
 
 
 def camera_blur(image: NDArray[np.floating], spec: PatternSpec, carriers: Carriers | None = None) -> float | None:
@@ -1548,8 +1562,7 @@ def camera_blur(image: NDArray[np.floating], spec: PatternSpec, carriers: Carrie
     view = np.ascontiguousarray(along_carriers(img, spec), dtype=np.float32)
     windows = np.ascontiguousarray(np.broadcast_to(found.line_windows(), (view.shape[0],)), dtype=np.intp)
     floor = _step_floor(view)
-    delta, flat = _find_steps(view, windows, floor, STEP_SPREAD, True)
-    return edge_blur(view, windows, flat & (np.abs(delta) >= BLUR_HEIGHT), floor)
+    return _steps_and_blur(functools.partial(_find_steps, view, windows, floor), view, windows, floor)[2]
 
 
 def normalise_albedo(image: NDArray[np.floating], carriers: Carriers, *, estimate: str = "steps",
