@@ -19,6 +19,11 @@ frames); classic Gray code with 4-step phase refinement, 7 bits on 8-row codes (
 * blur: the projector's and the camera's Gaussian sigma (pixels);
 * camera blur: the camera's alone, on the sphere under a 40 mm checker of 0.25 / 0.9 (an albedo
   edge is as sharp as the camera blurs it: the albedo-step detector measures it on the capture);
+* projector focus and camera focus: a depth of field, the lens focused on the working point
+  through an aperture of 0 (in focus at every depth: every other factor) to 16 mm
+  (`simulate.Conditions.projector_focus_mm`): the sphere's front, 123 mm nearer, and the wall,
+  200 mm farther, blurred more than its limbs (an 8 mm projector aperture: sigma 1.0 -> 1.3-1.5
+  projector px);
 * surface slope: a plane tilted about x (depth along the stripes' direction, stripes
   compressed) and about y (carriers compressed), 0-60 degrees;
 * projector roll: the projector turned about its own optical axis, 0-10 degrees, as a rig's
@@ -118,6 +123,21 @@ def _checker(low: float, conditions: simulate.Conditions) -> Scene:
     return _sphere(conditions, albedo=simulate.CheckerAlbedo(square_mm=40, low=low, high=0.9))
 
 
+#: Where the depth-of-field factors focus each lens: the working point, 800 mm along the
+#: camera's axis and ``hypot(800, 200)`` mm along the projector's (it sits 200 mm above).
+FOCUS_MM = {"camera": 800.0, "projector": float(np.hypot(800.0, 200.0))}
+
+
+def _focused(device: str) -> Callable[[float, simulate.Conditions], Scene]:
+    """A factor's scene: the sphere, `device` ("camera" or "projector") focused on the working
+    point through an aperture of the level (mm; 0: in focus at every depth)."""
+    def scene(aperture: float, conditions: simulate.Conditions) -> Scene:
+        if aperture == 0:
+            return _sphere(conditions)
+        return _sphere(conditions, **{f"{device}_focus_mm": FOCUS_MM[device], f"{device}_aperture_mm": aperture})
+    return scene
+
+
 def _precorrected(mismatch: float, spec: PatternSpec) -> PatternSpec:
     return spec.with_(gamma=1.0 if mismatch == BASE_GAMMA else BASE_GAMMA - mismatch)
 
@@ -154,6 +174,9 @@ FACTORS = (
            lambda v, c: _sphere(c, projector_blur_px=v, camera_blur_px=v)),
     Factor("camera blur", "camera sigma (px), 40 mm checker of 0.25 / 0.9", (0.5, 1.0, 1.5, 2.0, 2.5),
            (0.5, 1.0, 2.0), lambda v, c: _checker(0.25, c.with_(camera_blur_px=v))),
+    Factor("projector focus", "projector aperture (mm; 0 = all in focus)", (0, 4, 8, 12, 16), (0, 8, 16),
+           _focused("projector")),
+    Factor("camera focus", "camera aperture (mm; 0 = all in focus)", (0, 3, 6, 9, 12), (0, 6, 12), _focused("camera")),
     Factor("slope x", "tilt about x (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("x")),
     Factor("slope y", "tilt about y (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("y")),
     Factor("projector roll", "turn about its axis (deg)", (0, 1, 2, 3, 5, 10), (0, 3, 10),

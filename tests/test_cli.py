@@ -199,6 +199,27 @@ def test_simulate_writes_the_ground_truth(plane: tuple[Path, str]) -> None:
     assert capture.dtype == np.uint8 and capture.shape == CAMERA[::-1]
 
 
+def test_simulate_depth_of_field_reaches_the_render(tmp_path: Path) -> None:
+    ok("pattern", "composite", "--projector", "256x192", "-o", "cp.png", cwd=tmp_path)
+    common = ("simulate", "--pattern", "cp.json", "--scene", "plane", "--camera", "160x120", "--supersample", "1",
+              "--no-noise")
+    ok(*common, "--projector-focus", 400, "--projector-aperture", 30, "--camera-focus", 500, "--camera-aperture", 20,
+       "-o", "dof.png", cwd=tmp_path)
+    ok(*common, "-o", "sharp.png", cwd=tmp_path)
+    conditions = simulate.Conditions(ambient=0.1, projector_gamma=2.2, supersample=1, seed=0, full_well_e=None,
+                                     projector_focus_mm=400.0, projector_aperture_mm=30.0, camera_focus_mm=500.0,
+                                     camera_aperture_mm=20.0)
+    rig = simulate.virtual_rig(camera_size=(160, 120), projector_size=(256, 192))
+    spec = PatternSpec.load(tmp_path / "cp.json")
+    expected = simulate.render(rig, simulate.plane_scene(), patterns.render_pattern(spec), conditions).image
+    np.testing.assert_array_equal(read_png(tmp_path / "dof.png"), np.round(expected * 255).astype(np.uint8))
+    # out of focus the carriers lose contrast
+    contrast = {name: np.std(read_png(tmp_path / f"{name}.png").astype(float)) for name in ("dof", "sharp")}
+    assert contrast["dof"] < 0.9 * contrast["sharp"]
+    bad = sliscan(*common, "--projector-focus", 0, "-o", "bad.png", cwd=tmp_path)
+    assert bad.returncode == 2 and "--projector-focus" in bad.stderr and not (tmp_path / "bad.png").exists()
+
+
 def test_scan_timings_prints_every_stage(plane: tuple[Path, str]) -> None:
     folder, _ = plane
     stdout = ok("scan", "capture.png", "--pattern", "cp.json", "--calibration", "rig.json", "--timings",

@@ -18,6 +18,7 @@ from sliscan.simulate import (
     Plane,
     Rig,
     SmoothAlbedo,
+    TracedScene,
     Sphere,
     UniformAlbedo,
     Union,
@@ -400,8 +401,9 @@ def test_edges_flag_steps(rig):
     assert not flat.edge.any()
 
 
-def _sinusoid_gain(rig, blur: dict, freq: float) -> float:
-    """Amplitude of a projected cosine along xp after `blur`, relative to no blur."""
+def _sinusoid_gain(rig, blur: dict, freq: float, transfer=None) -> float:
+    """Amplitude of a projected cosine along xp after `blur`, relative to no blur and to
+    `transfer(truth)`, the ``(H, W)`` gain expected at each pixel (default 1)."""
     hp, wp = rig.projector.shape
     xp = np.arange(wp)[None, :] * np.ones((hp, 1))
     wave = 0.5 + 0.4 * np.cos(2 * np.pi * freq * xp)
@@ -409,7 +411,10 @@ def _sinusoid_gain(rig, blur: dict, freq: float) -> float:
     sharp_cond = Conditions.ideal()
     blur_cond = sharp_cond.with_(**blur)
     ac_sharp = render(rig, plane_scene(), wave, sharp_cond).image - render(rig, plane_scene(), flat, sharp_cond).image
-    ac_blur = render(rig, plane_scene(), wave, blur_cond).image - render(rig, plane_scene(), flat, blur_cond).image
+    blurred = render(rig, plane_scene(), wave, blur_cond)
+    ac_blur = blurred.image - render(rig, plane_scene(), flat, blur_cond).image
+    if transfer is not None:
+        ac_sharp = ac_sharp * transfer(blurred.truth)
     core = np.s_[20:-20, 20:-20]  # away from the frustum edge and the image border
     a, b = ac_sharp[core].ravel(), ac_blur[core].ravel()
     return float(a @ b / (a @ a))
@@ -432,6 +437,49 @@ def test_camera_blur_mtf():
     gain = _sinusoid_gain(rig, {"camera_blur_px": sigma}, f_p)
     # The fringes fan out slightly between rows, which the vertical blur mixes (0.2 % here).
     assert gain == pytest.approx(np.exp(-2 * np.pi**2 * sigma**2 * f_c**2), rel=0.01)
+
+
+def test_projector_depth_of_field_mtf(rig):
+    """Each point's light is blurred by the thin lens's circle of confusion at its own depth
+    along the projector's axis (786-863 mm on the working plane, the projector pitched)."""
+    focus, aperture, f = 500.0, 40.0, 1 / 16
+    focal = rig.projector.K[0, 0]
+
+    def transfer(truth):
+        _, depth = rig.projector.project(truth.points.astype(np.float64))
+        sigma = focal * aperture * np.abs(1 / depth - 1 / focus) / 4  # 1.6-1.9 px here
+        return np.exp(-2 * np.pi**2 * sigma**2 * f**2)
+
+    gain = _sinusoid_gain(rig, {"projector_focus_mm": focus, "projector_aperture_mm": aperture}, f, transfer)
+    # as for test_projector_blur_mtf, with the blend between blurs 0.125 px apart (< 0.3 % here)
+    assert gain == pytest.approx(1.0, rel=0.01)  # (in focus everywhere it would be 1.27)
+
+
+def test_camera_depth_of_field_mtf():
+    rig = virtual_rig(camera_size=(320, 240), projector_size=PROJECTOR)
+    focus, aperture, f_p = 500.0, 20.0, 1 / 8
+    xp_row = render(rig, plane_scene(), np.ones(rig.projector.shape), Conditions.ideal()).truth.proj[120, :, 0]
+    f_c = f_p * float(np.mean(np.diff(xp_row[100:220])))
+    # the working plane is 800 mm from the camera everywhere: one circle of confusion
+    sigma = rig.camera.K[0, 0] * aperture * (1 / 500 - 1 / 800) / 4
+    assert 1.5 < sigma < 2.5
+    gain = _sinusoid_gain(rig, {"camera_focus_mm": focus, "camera_aperture_mm": aperture}, f_p)
+    assert gain == pytest.approx(np.exp(-2 * np.pi**2 * sigma**2 * f_c**2), rel=0.01)
+
+
+def test_a_traced_scene_renders_the_depth_of_field_as_render_does(rig):
+    conditions = Conditions(projector_focus_mm=600.0, projector_aperture_mm=20.0, camera_focus_mm=700.0,
+                            camera_aperture_mm=20.0, supersample=2, seed=3)
+    drive = np.random.default_rng(0).random(rig.projector.shape)
+    traced = TracedScene(rig, sphere_scene(), conditions)
+    np.testing.assert_array_equal(traced.capture(drive), render(rig, sphere_scene(), drive, conditions).image)
+
+
+def test_depth_of_field_conditions_are_checked():
+    for bad in ({"projector_focus_mm": 0.0}, {"camera_focus_mm": -5.0}, {"projector_aperture_mm": 0.0},
+                {"camera_aperture_mm": float("nan")}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            Conditions(**bad)
 
 
 # ----------------------------------------------------------------------------- mat5 surface

@@ -301,10 +301,14 @@ def _check_projector(spec: PatternSpec, pattern: Path, calibration: Calibration,
 
 
 def _conditions(*, albedo: str, ambient: float, gamma: float, blur: float, noise: bool, supersample: int,
-                seed: int) -> simulate.Conditions:
-    """Capture conditions: `blur` (px) applies to projector and camera; `gamma` is the projector's."""
+                seed: int, projector_focus: float | None = None, projector_aperture: float = 8.0,
+                camera_focus: float | None = None, camera_aperture: float = 3.0) -> simulate.Conditions:
+    """Capture conditions: `blur` (px) applies to projector and camera in focus; `gamma` is the
+    projector's; a focus (mm) gives that device a depth of field with its aperture (mm)."""
     conditions = simulate.Conditions(albedo=ALBEDOS[albedo](seed), ambient=ambient, projector_gamma=gamma,
-                                     projector_blur_px=blur, camera_blur_px=blur, supersample=supersample, seed=seed)
+                                     projector_blur_px=blur, camera_blur_px=blur, supersample=supersample, seed=seed,
+                                     projector_focus_mm=projector_focus, projector_aperture_mm=projector_aperture,
+                                     camera_focus_mm=camera_focus, camera_aperture_mm=camera_aperture)
     return conditions if noise else conditions.with_(full_well_e=None)
 
 
@@ -808,7 +812,18 @@ Examples:
               help="Ambient light, fraction of the projector's full white.")
 @click.option("--gamma", type=POSITIVE, default=2.2, show_default=True, help="Projector gamma.")
 @click.option("--blur", type=click.FloatRange(min=0), default=1.0, show_default=True,
-              help="Projector and camera blur (Gaussian sigma, px).")
+              help="Projector and camera blur in focus (Gaussian sigma, px).")
+@click.option("--projector-focus", type=POSITIVE, metavar="MM",
+              help="A depth of field: the distance along the projector's axis it is focused at (default: in "
+                   "focus at every depth); nearer and farther points are blurred by a thin lens of "
+                   "--projector-aperture.")
+@click.option("--projector-aperture", type=POSITIVE, default=8.0, show_default=True, metavar="MM",
+              help="With --projector-focus: the projector lens's aperture diameter.")
+@click.option("--camera-focus", type=POSITIVE, metavar="MM",
+              help="A depth of field: the distance along the camera's axis it is focused at (default: in focus "
+                   "at every depth), with --camera-aperture.")
+@click.option("--camera-aperture", type=POSITIVE, default=3.0, show_default=True, metavar="MM",
+              help="With --camera-focus: the camera lens's aperture diameter.")
 @click.option("--noise/--no-noise", default=True, show_default=True, help="Shot and read noise.")
 @click.option("--supersample", type=click.IntRange(min=1), default=3, show_default=True,
               help="Sub-pixels per camera pixel per axis.")

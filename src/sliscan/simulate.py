@@ -5,6 +5,8 @@ capture suffers (thesis eq. 3.2 and chapter 5), in this order:
 
 1. projector drive ``d`` -> linear light ``black + (1 - black) * d**gamma``;
 2. projector optical blur: a Gaussian in projector pixels, light spreading past the image edge;
+   with a depth of field (`Conditions.projector_focus_mm`) its sigma grows with each lit point's
+   distance from the focal plane (thin lens), blended between blurs `DEFOCUS_STEP_PX` apart;
 3. for every camera sub-pixel ray: the nearest surface hit ``X``, its projector coordinates
    ``(xp, yp)`` by the projector matrix, the blurred light sampled bilinearly there (none
    outside the projector's frustum), a shadow ray from ``X`` to the projector centre,
@@ -12,7 +14,7 @@ capture suffers (thesis eq. 3.2 and chapter 5), in this order:
 4. camera signal ``exposure * albedo(X) * (light * cos * falloff + ambient)`` (eq. 3.2:
    ``I_c = alpha (I_p + beta)``); ambient light is diffuse: never shadowed, never foreshortened;
 5. the mean of the sub-pixels (the pixel's box aperture), then camera optical blur (Gaussian in
-   camera pixels);
+   camera pixels; with `Conditions.camera_focus_mm`, each pixel's by the depth its centre sees);
 6. shot noise (Poisson in electrons), read noise (Gaussian), saturation and quantisation.
 
 Conventions (DESIGN.md): the world frame is the camera frame of `virtual_rig`, in millimetres,
@@ -1475,6 +1477,18 @@ class Conditions:
     camera_blur_px : float
         Gaussian sigma of the camera optics, in camera pixels (after the pixel aperture).
         Default 1.0.
+    projector_focus_mm, camera_focus_mm : float or None
+        Depth of field: the distance along the device's optical axis of the plane its lens
+        focuses on, in mm.  A point at depth ``z`` spreads into a disc of diameter
+        ``c = f D |1/z - 1/focus|`` pixels (thin lens; ``f`` the focal length in pixels, ``D``
+        the aperture), blurred as a Gaussian of the disc's standard deviation ``c / 4`` added
+        in quadrature to the in-focus `projector_blur_px` / `camera_blur_px`.  The projector
+        blurs each surface point's light by that point's depth; the camera blurs each pixel by
+        the depth of the surface its centre sees (a gather: a defocused foreground does not
+        spread over the background beside it).  Default None: in focus at every depth.
+    projector_aperture_mm, camera_aperture_mm : float
+        The lens's aperture (entrance pupil) diameter, in mm, with a focus.  Defaults 8.0 (a
+        20 mm projector lens at f/2.5) and 3.0 (a 12 mm camera lens at f/4).
     exposure : float
         Camera signal (full scale = 1) for albedo 1 under full white at normal incidence at the
         working distance.  Default 0.8: headroom for the brightest points of the default scenes.
@@ -1502,6 +1516,10 @@ class Conditions:
     projector_black: float = 0.005
     projector_blur_px: float = 1.0
     camera_blur_px: float = 1.0
+    projector_focus_mm: float | None = None
+    projector_aperture_mm: float = 8.0
+    camera_focus_mm: float | None = None
+    camera_aperture_mm: float = 3.0
     exposure: float = 0.8
     full_well_e: float | None = 10000.0
     read_noise_e: float = 8.0
@@ -1519,6 +1537,10 @@ class Conditions:
             "projector_black": 0 <= self.projector_black < 1,
             "projector_blur_px": self.projector_blur_px >= 0,
             "camera_blur_px": self.camera_blur_px >= 0,
+            "projector_focus_mm": self.projector_focus_mm is None or self.projector_focus_mm > 0,
+            "projector_aperture_mm": self.projector_aperture_mm > 0,
+            "camera_focus_mm": self.camera_focus_mm is None or self.camera_focus_mm > 0,
+            "camera_aperture_mm": self.camera_aperture_mm > 0,
             "exposure": self.exposure > 0,
             "full_well_e": self.full_well_e is None or self.full_well_e > 0,
             "read_noise_e": self.read_noise_e >= 0,
@@ -1623,6 +1645,7 @@ class _Hits:
     proj: NDArray[np.float64]  # (N, 2)
     cos: NDArray[np.float64]  # cos(incidence) of projector light
     dist: NDArray[np.float64]  # distance to the projector centre, mm
+    depth: NDArray[np.float64]  # depth along the projector's axis, mm
     reached: NDArray[np.bool_]  # projector light can reach it (within the padded frustum)
     inside: NDArray[np.bool_]  # within the nominal projector image
     pixel: NDArray[np.float64]  # (N, 2) the sample's camera pixel position (x, y)
@@ -1656,23 +1679,89 @@ def _trace(rig: Rig, scene: Surface, xc: NDArray[np.float64], yc: NDArray[np.flo
         start = points[reached] + _SHADOW_OFFSET_MM * normal[reached]
         blocked, _ = scene.intersect(start, rig.projector.centre - start)
         reached[reached] = ~(blocked < 1.0)
-    return _Hits(points, normal, surface, proj, cos, dist, reached, within(0.0), np.stack([xc, yc], axis=-1))
+    return _Hits(points, normal, surface, proj, cos, dist, depth, reached, within(0.0), np.stack([xc, yc], axis=-1))
 
 
-def _projector_pad(conditions: Conditions) -> int:
-    """Projector pixels that blurred light spreads past the image edge (4 sigma)."""
-    return math.ceil(4 * conditions.projector_blur_px)
+def defocus_blur(depth: ArrayLike, *, in_focus_px: float, focus_mm: float | None, aperture_mm: float,
+                 focal_px: float) -> NDArray[np.float64]:
+    """Gaussian sigma (pixels) of a lens's blur at each depth (mm along its axis).
+
+    The in-focus blur in quadrature with a quarter of the thin lens's circle of confusion,
+    ``focal_px * aperture_mm * |1/depth - 1/focus_mm|`` pixels across (a uniform disc's standard
+    deviation is a quarter of its diameter).  `focus_mm` None: `in_focus_px` everywhere.
+
+    >>> [round(float(s), 3) for s in defocus_blur([800.0, 400.0], in_focus_px=1.0, focus_mm=800.0,
+    ...                                            aperture_mm=8.0, focal_px=1600.0)]
+    [1.0, 4.123]
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if focus_mm is None:
+        return np.full(depth.shape, float(in_focus_px))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disc = focal_px * aperture_mm * np.abs(1.0 / depth - 1.0 / focus_mm)
+    return np.hypot(in_focus_px, disc / 4)
 
 
-def _projector_light(drive: NDArray[np.float32], conditions: Conditions) -> tuple[NDArray[np.float32], int]:
-    """Linear, blurred projector light on a zero-padded canvas, and the padding in pixels."""
-    black = conditions.projector_black
-    light = (black + (1 - black) * drive.astype(np.float64) ** conditions.projector_gamma).astype(np.float32)
-    sigma = conditions.projector_blur_px
-    if sigma == 0:
-        return light, 0
-    pad = _projector_pad(conditions)
-    return scipy.ndimage.gaussian_filter(np.pad(light, pad), sigma, mode="constant", truncate=4.0), pad
+#: Blurs that vary with depth are rendered as blends of the light blurred at multiples of this
+#: sigma (pixels), linearly between the two that bracket each point's blur.
+DEFOCUS_STEP_PX = 0.125
+
+
+def _blend_weights(sigma: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.float32]]:
+    """The lower `DEFOCUS_STEP_PX` level below each sigma and the weight of the one above it."""
+    level = np.maximum(sigma, 0) / DEFOCUS_STEP_PX
+    low = np.floor(level).astype(np.intp)
+    return low, (level - low).astype(np.float32)
+
+
+def _projector_pad(conditions: Conditions, focal_px: float) -> int:
+    """Projector pixels that blurred light spreads past the image edge (4 sigma; with a depth of
+    field, of the blur at half or twice the focus distance)."""
+    focus = conditions.projector_focus_mm
+    sigma = float(defocus_blur(np.float64(focus / 2 if focus else 1.0), in_focus_px=conditions.projector_blur_px,
+                               focus_mm=focus, aperture_mm=conditions.projector_aperture_mm, focal_px=focal_px))
+    return math.ceil(4 * sigma)
+
+
+class _ProjectorLight:
+    """Linear projector light on a zero-padded canvas, blurred as the projector's optics blur it
+    at the depth of each point it falls on (`Conditions.projector_focus_mm`).
+
+    The canvases blurred at each `DEFOCUS_STEP_PX` level a depth asks for are made once and kept.
+    """
+
+    def __init__(self, drive: NDArray[np.float32], conditions: Conditions, focal_px: float) -> None:
+        black = conditions.projector_black
+        light = (black + (1 - black) * drive.astype(np.float64) ** conditions.projector_gamma).astype(np.float32)
+        self.conditions, self.focal_px = conditions, focal_px
+        self.pad = _projector_pad(conditions, focal_px)
+        self._linear = np.pad(light, self.pad)
+        self._canvases: dict[float, NDArray[np.float32]] = {}
+
+    def canvas(self, sigma: float) -> NDArray[np.float32]:
+        """The light blurred by a Gaussian of `sigma` projector pixels (kept for the next call)."""
+        if sigma not in self._canvases:
+            self._canvases[sigma] = self._linear if sigma <= 0 else scipy.ndimage.gaussian_filter(
+                self._linear, sigma, mode="constant", truncate=4.0)
+        return self._canvases[sigma]
+
+    def sample(self, xp: NDArray[np.float64], yp: NDArray[np.float64],
+               depth: NDArray[np.float64]) -> NDArray[np.float32]:
+        """Irradiance (before shading) at projector pixels ``(xp, yp)`` of points at `depth` mm
+        along the projector's axis: ``(N,)``."""
+        x, y, cond = xp + self.pad, yp + self.pad, self.conditions
+        if cond.projector_focus_mm is None:
+            return _bilinear(self.canvas(cond.projector_blur_px), x, y)
+        sigma = defocus_blur(depth, in_focus_px=cond.projector_blur_px, focus_mm=cond.projector_focus_mm,
+                             aperture_mm=cond.projector_aperture_mm, focal_px=self.focal_px)
+        low, upper = _blend_weights(sigma)
+        out = np.empty(len(x), dtype=np.float32)
+        for level in np.unique(low):
+            at = low == level
+            below = _bilinear(self.canvas(level * DEFOCUS_STEP_PX), x[at], y[at])
+            above = _bilinear(self.canvas((level + 1) * DEFOCUS_STEP_PX), x[at], y[at])
+            out[at] = below + upper[at] * (above - below)
+        return out
 
 
 def _bilinear(image: NDArray[np.float32], x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float32]:
@@ -1864,21 +1953,23 @@ class TracedScene:
         self.rig = rig
         self.scene = scene
         self.conditions = Conditions() if conditions is None else conditions
-        offsets, _ = _subpixel_offsets(self.conditions.supersample)
+        offsets, centre = _subpixel_offsets(self.conditions.supersample)
         self._samples = len(offsets)
-        self._pad = _projector_pad(self.conditions)
+        pad = _projector_pad(self.conditions, float(rig.projector.K[0, 0]))
         self._chunks = []
+        self._depth = np.empty(rig.camera.shape)
         for rows in _row_chunks(rig, self._samples):
-            hits = _trace_rows(rig, scene, rows, offsets, self._pad)
+            hits = _trace_rows(rig, scene, rows, offsets, pad)
             self._chunks.append((rows, hits, _albedo(rig.camera, hits, self.conditions)))
+            self._depth[rows] = _centre_depths(rig.camera, hits, self._samples, centre).reshape(-1, rig.camera.size[0])
 
     def signal(self, projected: ArrayLike) -> NDArray[np.float32]:
         """Camera signal ``(H, W)`` float32 (full scale 1) before the sensor: no noise, no clipping."""
-        light, pad = _projector_light(_check_drive(projected, self.rig), self.conditions)
+        light = _ProjectorLight(_check_drive(projected, self.rig), self.conditions, float(self.rig.projector.K[0, 0]))
         signal = np.empty(self.rig.camera.shape, dtype=np.float32)
         for rows, hits, albedo in self._chunks:
-            signal[rows] = _pixel_signal(self.rig, hits, albedo, light, pad, self.conditions, self._samples)
-        return _camera_blur(signal, self.conditions)
+            signal[rows] = _pixel_signal(self.rig, hits, albedo, light, self.conditions, self._samples)
+        return _camera_blur(signal, self.conditions, self.rig.camera, self._depth)
 
     def capture(self, projected: ArrayLike, rng: np.random.Generator | int | None = None) -> NDArray[np.float32]:
         """A camera frame ``(H, W)`` float32 in [0, 1] of `projected` (Hp, Wp) in [0, 1]: `signal`
@@ -1895,8 +1986,8 @@ def _render_signals(
 
     Traces every chunk of camera rows once and shades it under each drive image.
     """
-    lights = [_projector_light(drive, cond) for drive in drives]
-    pad = lights[0][1]
+    lights = [_ProjectorLight(drive, cond, float(rig.projector.K[0, 0])) for drive in drives]
+    pad = lights[0].pad
     offsets, centre = _subpixel_offsets(cond.supersample)
     shape = rig.camera.shape
     signals = [np.empty(shape, dtype=np.float32) for _ in drives]
@@ -1911,8 +2002,8 @@ def _render_signals(
         alb = _albedo(rig.camera, hits, cond)
         n_pix = len(hits.surface) // len(offsets)
         per_pixel = (n_pix, len(offsets))
-        for signal, (light, _) in zip(signals, lights):
-            signal[rows] = _pixel_signal(rig, hits, alb, light, pad, cond, len(offsets))
+        for signal, light in zip(signals, lights):
+            signal[rows] = _pixel_signal(rig, hits, alb, light, cond, len(offsets))
         sub_lit = (hits.reached & hits.inside).reshape(per_pixel)
         sub_surface = hits.surface.reshape(per_pixel)
         sub_points = hits.points.reshape(*per_pixel, 3)
@@ -1931,24 +2022,48 @@ def _render_signals(
         albedo[rows] = np.where(sub_surface[:, centre], alb.reshape(per_pixel)[:, centre], np.nan).reshape(block)
         edge[rows] = (mixed | stepped).reshape(block)
 
-    signals = [_camera_blur(signal, cond) for signal in signals]
+    depth = (points.astype(np.float64) - rig.camera.centre) @ rig.camera.axis
+    signals = [_camera_blur(signal, cond, rig.camera, depth) for signal in signals]
     return signals, GroundTruth(points=points, proj=proj, lit=lit, surface=surface, albedo=albedo, edge=edge)
 
 
-def _pixel_signal(rig: Rig, hits: _Hits, albedo: NDArray[np.float32], light: NDArray[np.float32], pad: int,
-                  cond: Conditions, samples: int) -> NDArray[np.float32]:
+def _pixel_signal(rig: Rig, hits: _Hits, albedo: NDArray[np.float32], light: _ProjectorLight, cond: Conditions,
+                  samples: int) -> NDArray[np.float32]:
     """Camera signal of a chunk of whole camera rows ``(rows, W)``: `_shade` of its ray samples
     (`samples` per pixel, sample-fastest) averaged over the pixel's aperture samples."""
-    value = _shade(hits, albedo, light, pad, cond, rig.projector_distance_mm)
+    value = _shade(hits, albedo, light, cond, rig.projector_distance_mm)
     n_sub = cond.supersample**2
     return value.reshape(-1, samples)[:, :n_sub].mean(axis=1).reshape(-1, rig.camera.size[0])
 
 
-def _camera_blur(signal: NDArray[np.float32], cond: Conditions) -> NDArray[np.float32]:
-    """The camera optics' Gaussian blur (`Conditions.camera_blur_px`), if any."""
-    if cond.camera_blur_px <= 0:
-        return signal
-    return scipy.ndimage.gaussian_filter(signal, cond.camera_blur_px, mode="nearest", truncate=4.0)
+def _camera_blur(signal: NDArray[np.float32], cond: Conditions, camera: Pinhole,
+                 depth: NDArray[np.float64]) -> NDArray[np.float32]:
+    """The camera optics' Gaussian blur (`Conditions.camera_blur_px`), if any; with a focus
+    (`Conditions.camera_focus_mm`) each pixel's by the `depth` (mm along the camera's axis,
+    ``(H, W)``, NaN where no surface: blurred as in focus) its centre sees, blended between the
+    signal blurred at the two `DEFOCUS_STEP_PX` levels around it."""
+
+    def blurred(sigma: float) -> NDArray[np.float32]:
+        return signal if sigma <= 0 else scipy.ndimage.gaussian_filter(signal, sigma, mode="nearest", truncate=4.0)
+
+    if cond.camera_focus_mm is None:
+        return blurred(cond.camera_blur_px)
+    sigma = defocus_blur(depth, in_focus_px=cond.camera_blur_px, focus_mm=cond.camera_focus_mm,
+                         aperture_mm=cond.camera_aperture_mm, focal_px=float(camera.K[0, 0]))
+    low, upper = _blend_weights(np.where(np.isfinite(sigma), sigma, cond.camera_blur_px))
+    out = np.zeros_like(signal)
+    for level in range(int(low.min()), int(low.max()) + 2):
+        weight = np.where(low == level, 1 - upper, 0) + np.where(low == level - 1, upper, 0)
+        if weight.any():
+            out += weight * blurred(level * DEFOCUS_STEP_PX)
+    return out
+
+
+def _centre_depths(camera: Pinhole, hits: _Hits, samples: int, centre: int) -> NDArray[np.float64]:
+    """Depth along the camera's axis (mm) of the surface each pixel centre of a chunk sees
+    (NaN where none), ``(n_pixels,)``."""
+    points = hits.points.reshape(-1, samples, 3)[:, centre]
+    return (points - camera.centre) @ camera.axis
 
 
 def _albedo(camera: Pinhole, hits: _Hits, conditions: Conditions) -> NDArray[np.float32]:
@@ -2006,19 +2121,16 @@ def _footprints(camera: Pinhole, points: NDArray[np.float64], normals: NDArray[n
     return footprint
 
 
-def _shade(
-    hits: _Hits, albedo: NDArray[np.float32], light: NDArray[np.float32], pad: int, conditions: Conditions,
-    falloff_mm: float
-) -> NDArray[np.float32]:
+def _shade(hits: _Hits, albedo: NDArray[np.float32], light: _ProjectorLight, conditions: Conditions,
+           falloff_mm: float) -> NDArray[np.float32]:
     """Camera signal (full scale = 1) of each ray sample, before the sensor.
 
-    `albedo` is `_albedo` of the samples; `light` is the projector canvas of
-    `_projector_light` with its padding `pad`; the inverse-square falloff is 1 at `falloff_mm`
-    from the projector centre.
+    `albedo` is `_albedo` of the samples; the inverse-square falloff is 1 at `falloff_mm` from
+    the projector centre.
     """
     on = hits.reached
     irradiance = np.zeros(len(on), dtype=np.float32)
-    irradiance[on] = _bilinear(light, hits.proj[on, 0] + pad, hits.proj[on, 1] + pad) * hits.cos[on]
+    irradiance[on] = light.sample(hits.proj[on, 0], hits.proj[on, 1], hits.depth[on]) * hits.cos[on]
     if conditions.inverse_square:
         irradiance[on] *= (falloff_mm / hits.dist[on]) ** 2
     return conditions.exposure * albedo * (irradiance + np.float32(conditions.ambient))
