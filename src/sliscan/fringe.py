@@ -20,7 +20,10 @@ Stages, each its own function:
    regressed on the fringe model at each sample's current phase and light share, until the
    levels settle (the scene's phases need not cover the circle evenly).  The crosstalk is a projector gamma's
    products of two carriers that land on a phase carrier (`crosstalk`): with the pixel's
-   stripe known they are linear in its fringes and are taken out (`phasors`).
+   stripe known they are linear in its fringes and are taken out (`phasors`).  Given each
+   pixel's depth (the Gray code's lines triangulated), the gains are then fitted as
+   quadratics in the inverse depth and each pixel's envelopes read with its own
+   (`relevelled`): a projector focused at one depth blurs its finest carriers more elsewhere.
 2. `phasors`: per pixel the fringe's phasor ``sum_n I_n exp(i 2 pi n / N)``, unweighted
    (a DC weight would move each box's phase toward its brighter side), from the envelopes of
    `phase_envelopes`: away from edges those of the demodulator's two-period windows with a
@@ -68,6 +71,7 @@ Measured on the virtual rig: docs/accuracy.md, "Sub-stripe depth from one frame"
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import cv2
@@ -97,11 +101,37 @@ class ChannelLevels:
         relative to its own fringe: ``ratio_n = offset_n + gain_n (I_n + crosstalk_n P_n)``.
         About ``(gamma - 1) / 2 * b_p / a_p`` for an uncorrected gamma (0.086 for gamma 2.2 and
         the default pattern; measured 0.082-0.096); 0 for a linear projector.
+    depth_gain : (N, 2) float64 array or None
+        How each gain changes with depth: ``gain_n + a_n t + b_n t**2`` at ``t = (1 / z -
+        centre) / scale`` (`depth_reference`), ``z`` the projector's depth (mm) of the pixel's
+        surface (`gains`).  A projector focused at one depth blurs nearer and farther points
+        more, and its finer carriers lose more of their modulation: through a Gaussian blur of
+        variance ``sigma**2`` a carrier of frequency ``f`` keeps ``exp(-2 pi**2 sigma**2 f**2)``,
+        and a thin lens's ``sigma**2`` is a quadratic in ``1 / z``.  (The log gain, exactly
+        quadratic for that lens, fitted so: measured worse on in-focus captures, docs/accuracy.md.)
+        None: one gain everywhere.
+    depth_reference : (4,) float64 array or None
+        ``(centre, scale, low, high)``: the inverse depths' reference and scale (1/mm), and the
+        range of ``t`` the fit saw (`gains` holds ``t`` within it).
     """
 
     gain: NDArray[np.float64]
     offset: NDArray[np.float64]
     crosstalk: NDArray[np.float64]
+    depth_gain: NDArray[np.float64] | None = None
+    depth_reference: NDArray[np.float64] | None = None
+
+    def gains(self, inverse_depth: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Each phase carrier's gain at pixels of `inverse_depth` (1/mm, any shape; NaN: the
+        reference depth's): ``(N, *shape)``."""
+        shape = (self.gain.size, *np.shape(inverse_depth))
+        if self.depth_gain is None or self.depth_reference is None:
+            return np.broadcast_to(self.gain.reshape(-1, *[1] * np.ndim(inverse_depth)), shape)
+        centre, scale, low, high = self.depth_reference
+        t = np.clip(np.nan_to_num((np.asarray(inverse_depth, np.float64) - centre) / scale), low, high)[None]
+        a, b = (self.depth_gain[:, k].reshape(-1, *[1] * np.ndim(inverse_depth)) for k in (0, 1))
+        base = self.gain.reshape(-1, *[1] * np.ndim(inverse_depth))
+        return np.clip(base + a * t + b * t * t, MIN_GAIN_SHARE * base, base / MIN_GAIN_SHARE)
 
 
 def crosstalk(spec: PatternSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -167,6 +197,14 @@ def _unmixing(levels: ChannelLevels, big_c: NDArray[np.float64],
 
 #: Pixels `channel_levels` samples (about).
 LEVEL_SAMPLES = 5_000
+#: A phase carrier's gain at any depth is held within this share of its gain at the reference
+#: depth and its inverse: where the fit says the projector's blur took more, the carrier is
+#: mostly noise, which a larger gain would only amplify (a 16 mm aperture, the finest carrier
+#: at 1 % of its modulation: RMS 57 -> 131 mm with a share of 0.1, docs/accuracy.md).
+MIN_GAIN_SHARE = 0.5
+#: `channel_levels` scales the samples' inverse depths by their spread, but by at least this
+#: share of their median: over a shallower scene the gains' change with depth is noise.
+MIN_DEPTH_SPREAD = 0.02
 
 
 def sample_step(mask: NDArray[np.bool_], limit: int) -> int:
@@ -175,8 +213,8 @@ def sample_step(mask: NDArray[np.bool_], limit: int) -> int:
 
 
 def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: PatternSpec, *,
-                   stripes: NDArray[np.integer] | None = None, limit: int = LEVEL_SAMPLES, tolerance: float = 1e-4,
-                   max_iterations: int = 200) -> ChannelLevels:
+                   stripes: NDArray[np.integer] | None = None, inverse_depth: NDArray[np.floating] | None = None,
+                   limit: int = LEVEL_SAMPLES, tolerance: float = 1e-4, max_iterations: int = 200) -> ChannelLevels:
     """Gains, offsets and crosstalk of the phase carriers, estimated from the capture.
 
     Each pixel's ratios follow ``m (offset_n + gain_n (I_n(phi) + crosstalk_n P_n))``: `m`,
@@ -198,9 +236,14 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
         Pixels to learn from (decoded, lit), thinned to about `limit` on a regular grid.
     stripes : (H, W) int array, optional
         Each pixel's stripe (Gray code); without them the crosstalk is not fitted (0).
+    inverse_depth : (H, W) array, optional
+        Each pixel's inverse depth along the projector's axis (1/mm; NaN: unknown, not
+        sampled): the gains are fitted as quadratics in it (`ChannelLevels.depth_gain`).
     """
     step = sample_step(mask, limit)
     grid = mask[::step, ::step]
+    if inverse_depth is not None:
+        grid = grid & np.isfinite(inverse_depth[::step, ::step])
     samples = ratios[:, ::step, ::step][:, grid].astype(np.float64)  # (N, M)
     n = samples.shape[0]
     if samples.shape[1] < 10 * n:
@@ -214,27 +257,49 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
     shifts = phase_shifts(spec)
     levels = ChannelLevels(gain=np.maximum(np.percentile(samples, 98, axis=1), 1e-6), offset=np.zeros(n),
                            crosstalk=np.zeros(n))
+    depth_terms, reference, u = np.zeros((0, samples.shape[1])), None, np.zeros(0)
+    if inverse_depth is not None:
+        u = inverse_depth[::step, ::step][grid].astype(np.float64)
+        centre = float(np.median(u))
+        scale = max(float(np.std(u)), MIN_DEPTH_SPREAD * abs(centre), 1e-12)
+        t = (u - centre) / scale
+        depth_terms = np.stack([t, t * t])
+        reference = np.array([centre, scale, *np.percentile(t, [0.5, 99.5])])
     share = np.ones(samples.shape[1])
-    for _ in range(max_iterations):
+    with_depth, rounds = False, 0  # one gain per carrier until that fit settles, then its change with depth
+    for _ in range(2 * max_iterations):
+        rounds += 1
         gain, offset, kappa = levels.gain, levels.offset, levels.crosstalk
         mix, shift = _unmixing(levels, big_c, small_c)
-        level = (samples / share - offset[:, None]) / gain[:, None]
+        per_sample = levels.gains(u) if with_depth else gain[:, None]
+        level = (samples / share - offset[:, None]) / per_sample
         c, s = _phasor_parts(np.einsum("mij,jm->im", mix[stripe], level - shift[stripe].T), shifts)
         fringe = 0.5 * (1 + np.cos(np.arctan2(s, c)[None, :] - shifts[:, None]))  # (N, M)
         products = np.einsum("mij,jm->im", big_c[stripe], fringe) + small_c[stripe].T  # (N, M)
-        model = offset[:, None] + gain[:, None] * (fringe + kappa[:, None] * products)
+        model = offset[:, None] + per_sample * (fringe + kappa[:, None] * products)
         share = np.maximum(np.sum(samples * model, axis=0) / np.maximum(np.sum(model * model, axis=0), 1e-12), 1e-6)
         share /= share.mean()
         scaled = samples / share
-        fits = [np.linalg.lstsq(np.stack([np.ones_like(f), f, p], axis=1), r, rcond=None)[0]
-                for f, p, r in zip(fringe, products, scaled)]
-        new_offset, new_gain, weighted = (np.array(v) for v in zip(*fits))
-        new_gain = np.maximum(new_gain, 1e-6)
-        levels = ChannelLevels(gain=new_gain, offset=new_offset, crosstalk=weighted / new_gain)
-        change = np.max(np.abs(np.concatenate([new_gain - gain, new_offset - offset,
-                                               weighted - kappa * gain]))) / np.max(new_gain)
-        if change < tolerance:
-            break
+        if with_depth:  # the crosstalk kept: each carrier's gain a quadratic in the depth term
+            response = fringe + kappa[:, None] * products
+            fits = np.array([np.linalg.lstsq(np.stack([np.ones_like(f), f, *(f * depth_terms)], axis=1), r,
+                                             rcond=None)[0] for f, r in zip(response, scaled)])
+            new_offset, new_gain, depth_gain = fits[:, 0], np.maximum(fits[:, 1], 1e-6), fits[:, 2:]
+            weighted = kappa * new_gain
+        else:
+            fits = np.array([np.linalg.lstsq(np.stack([np.ones_like(f), f, p], axis=1), r, rcond=None)[0]
+                             for f, p, r in zip(fringe, products, scaled)])
+            new_offset, new_gain, weighted, depth_gain = fits[:, 0], np.maximum(fits[:, 1], 1e-6), fits[:, 2], None
+        change = np.max(np.abs(np.concatenate([new_gain - gain, new_offset - offset, weighted - kappa * gain,
+                                               (depth_gain - levels.depth_gain).ravel() if with_depth
+                                               else np.zeros(0)]))) / np.max(new_gain)
+        levels = ChannelLevels(gain=new_gain, offset=new_offset, crosstalk=weighted / new_gain, depth_gain=depth_gain,
+                               depth_reference=reference if with_depth else None)
+        if change < tolerance or rounds >= max_iterations:
+            if with_depth or reference is None:
+                break
+            with_depth, rounds = True, 0
+            levels = replace(levels, depth_gain=np.zeros((n, 2)), depth_reference=reference)
     return levels
 
 
@@ -263,22 +328,52 @@ def level_samples(demod: Demodulated, valid: NDArray[np.bool_], stripes: NDArray
     stripes : (h, w) int16 array
         The grid pixels' own stripes.
     """
-    n, half = len(spec.phase_carriers), max(length // 2, 0)
-    height, width = along_carriers(valid, spec).shape
-    rows = np.arange(half, height - half, step)
-    columns = np.arange(0, width, step)
-    around = rows[None, :, None] + np.arange(-half, half + 1)[:, None, None]  # (L, h, 1)
-
-    def gather(image: NDArray) -> NDArray:
-        return along_carriers(image, spec)[around, columns[None, None, :]]  # (L, h, w)
-
+    n = len(spec.phase_carriers)
+    gather = functools.partial(sample_stretches, spec=spec, step=step, length=length)
     stripe = gather(stripes).astype(np.int32)
     usable = np.all(gather(valid), axis=0) & (stripe.max(axis=0) - stripe.min(axis=0) <= 1)
     dc = np.sum(gather(demod.dc), axis=0, dtype=np.float64)
     envelopes = demod.amplitude[spec.bits:spec.bits + n] if envelopes is None else envelopes
     ratios = np.stack([np.sum(gather(envelopes[k]), axis=0, dtype=np.float64)
                        / np.maximum(dc, 1e-12) for k in range(n)]).astype(np.float32)
-    return ratios, usable, stripe[half].astype(np.int16)
+    return ratios, usable, stripe[max(length // 2, 0)].astype(np.int16)
+
+
+def sample_stretches(image: NDArray, *, spec: PatternSpec, step: int, length: int) -> NDArray:
+    """The values of `image` ``(H, W)`` (camera orientation) over `length` pixels along the phase
+    direction centred on every `step`-th pixel of `level_samples`' grid: ``(length | 1, h, w)``
+    (carriers along axis 2)."""
+    half = max(length // 2, 0)
+    framed = along_carriers(image, spec)
+    height, width = framed.shape
+    rows = np.arange(half, height - half, step)
+    around = rows[None, :, None] + np.arange(-half, half + 1)[:, None, None]  # (L, h, 1)
+    return framed[around, np.arange(0, width, step)[None, None, :]]
+
+
+def relevelled(envelopes: list[NDArray[np.float32]], dc: NDArray[np.float32], levels: ChannelLevels,
+               inverse_depth: NDArray[np.floating]) -> list[NDArray[np.float32]]:
+    """Sets of phase carriers' envelopes ``(N, H, W)`` changed so that `levels`' gains read them
+    as their gains at each pixel's depth (`ChannelLevels.gains` of `inverse_depth` ``(H, W)``)
+    read the originals: with ``d`` the DC, ``(E' / d - offset) / gain = (E / d - offset) /
+    gain(z)``.  The envelopes themselves where the levels do not change with depth."""
+    if levels.depth_gain is None or levels.depth_reference is None:
+        return envelopes
+    centre, scale, low, high = levels.depth_reference
+    t = np.clip(np.nan_to_num((inverse_depth.astype(np.float32) - np.float32(centre)) / np.float32(scale)),
+                low, high).astype(np.float32)
+    d = np.maximum(dc, np.float32(1e-6))
+    out = [np.empty_like(e) for e in envelopes]
+    for k in range(levels.gain.size):
+        g = np.float32(levels.gain[k])
+        a, b = (np.float32(v) for v in levels.depth_gain[k])
+        ratio = g / np.clip(g + t * (a + b * t), np.float32(MIN_GAIN_SHARE) * g, g / np.float32(MIN_GAIN_SHARE))
+        d_offset = d * np.float32(levels.offset[k])
+        for source, target in zip(envelopes, out):
+            np.subtract(source[k], d_offset, out=target[k])
+            target[k] *= ratio
+            target[k] += d_offset
+    return out
 
 
 def _phasor_parts(levels: NDArray[np.floating], shifts: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
@@ -1006,7 +1101,7 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
            short_run: float = SHORT_RUN, mid_run_contrast: float = MID_RUN_CONTRAST, shadow_sides: bool = True,
            ramped_windows: bool = True, gap_ring: int = GAP_RING, frame_ends: bool = True,
            one_sided_windows: bool = True, extend_reach: int = EXTEND_REACH, image: NDArray | None = None,
-           border_line: NDArray | None = None) -> Decoded:
+           border_line: NDArray | None = None, inverse_depth: NDArray | None = None) -> Decoded:
     """Sub-stripe projector lines from the phase channel; `decoded` unchanged without one.
 
     Each decoded pixel's fringe phase (`channel_levels`, `phasors`, `smooth_phasors`) is
@@ -1107,6 +1202,13 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
     border_line : (H, W) array, optional
         The Gray code's lines between located stripe borders (`sliscan.staircase.
         interpolate_lines`, camera orientation), for `one_sided_windows`.
+    inverse_depth : (H, W) array, optional
+        Each pixel's inverse depth along the projector's axis (1/mm, camera orientation; NaN
+        where unknown), from the Gray code's lines: the phase carriers' gains are fitted as
+        quadratics in it (`channel_levels`) and each pixel's envelopes read with the gains of
+        its depth (`relevelled`): a projector focused at one depth blurs the rest of the scene,
+        its finest carriers most (docs/accuracy.md, "A lens's depth of field").  Without it
+        one gain per carrier everywhere.
 
     Returns
     -------
@@ -1133,10 +1235,14 @@ def refine(decoded: Decoded, demod: Demodulated, carriers: Carriers, spec: Patte
                                                   ramped=ramped_windows, oblique=oblique)
     unbiased = debiased(envelopes, variance)
     del variance
-    sample, usable, sample_stripes = level_samples(demod, decoded.valid, decoded.stripe, spec,
-                                                   sample_step(decoded.valid, LEVEL_SAMPLES),
-                                                   along_phase if average_levels else 1, unbiased)
-    levels = channel_levels(sample, usable, spec, stripes=sample_stripes if unmix else None)
+    step, length = sample_step(decoded.valid, LEVEL_SAMPLES), along_phase if average_levels else 1
+    sample, usable, sample_stripes = level_samples(demod, decoded.valid, decoded.stripe, spec, step, length, unbiased)
+    sample_depth = None if inverse_depth is None else np.mean(
+        sample_stretches(inverse_depth, spec=spec, step=step, length=length), axis=0)
+    levels = channel_levels(sample, usable, spec, stripes=sample_stripes if unmix else None,
+                            inverse_depth=sample_depth)
+    if inverse_depth is not None:
+        unbiased, envelopes = relevelled([unbiased, envelopes], demod.dc, levels, inverse_depth)
     phasor = phasors(demod, decoded.valid, levels, spec, decoded.stripe, weighted=dc_weights, envelopes=unbiased,
                      totals=envelopes)
     phasor = np.stack([frame(p) for p in phasor]) if spec.orientation != "rows" else phasor

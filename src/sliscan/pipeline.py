@@ -97,6 +97,20 @@ def _finish_rows(points: NDArray[np.float32], valid: NDArray[np.bool_], proj_map
                 proj_out[y, x], index_out[y, x] = np.nan, -1
 
 
+def inverse_depths(points: NDArray[np.floating], matrix: NDArray[np.floating]) -> NDArray[np.float32]:
+    """Inverse depth (1/mm) along the axis of the device of 3x4 `matrix` of world points
+    ``(..., 3)`` (mm): ``(...)`` float32, NaN where a point is NaN.
+
+    >>> P = np.hstack([np.eye(3), [[0.0], [0.0], [0.0]]]) * 2  # a scaled pinhole at the origin
+    >>> 1 / inverse_depths(np.array([[0.0, 10.0, 800.0], [5.0, 0.0, 400.0]]), P)
+    array([800., 400.], dtype=float32)
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    row = m[2] * np.sign(np.linalg.det(m[:, :3])) / np.linalg.norm(m[2, :3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (1.0 / (np.asarray(points, dtype=np.float64) @ row[:3] + row[3])).astype(np.float32)
+
+
 def _finish(points: NDArray[np.float32], valid: NDArray[np.bool_], proj_map: NDArray[np.floating],
             index: NDArray[np.integer], *, in_place: bool = False) -> tuple[NDArray[np.float32], NDArray[np.int16]]:
     """A scan's outputs, restricted to `valid` ``(H, W)``: sets `points` ``(H, W, 3)`` to NaN
@@ -429,6 +443,12 @@ class Scanner:
         measures 1.03-1.06, within `sliscan.demodulate.STEP_BLUR_BAND` of the 1 px assumed, so
         nothing changes; a blurrier one is found again with its own blur: docs/accuracy.md, "A
         camera blurrier than assumed"), 1 px on the baseband path.
+    depth_levels : bool
+        Patterns with a phase channel, window and band-pass methods: fit the phase carriers'
+        gains as functions of depth (the Gray code's lines triangulated first: `inverse_depths`,
+        `sliscan.fringe.refine`'s ``inverse_depth``), since a projector focused at one depth
+        blurs its finest carriers more everywhere else.  Default True; False fits one gain per
+        carrier (for the benchmark's record; docs/accuracy.md, "A lens's depth of field").
 
     Examples
     --------
@@ -460,6 +480,7 @@ class Scanner:
     trim_edges: int = 0
     albedo: str | None = "steps"
     camera_blur: float | None = None
+    depth_levels: bool = True
     _carriers: Carriers | None = field(default=None, init=False, repr=False)
     _triangulators: dict[str, Triangulator] = field(default_factory=dict, init=False, repr=False)
     _tests: dict[tuple[str, float], MeasurableTest] = field(default_factory=dict, init=False, repr=False)
@@ -612,7 +633,12 @@ class Scanner:
             lines = prefer_centred(lines, centred[0][1], demod.centred.offset, self.spec, stripe_px=stripe_px,
                                    window=carriers.window)
         del centred  # its decoding's frames, before the phase channel's
-        decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image,
+        inverse_depth = None
+        if self.spec.phase_carriers and self.depth_levels:
+            coarse = stripes if lines is None else lines
+            inverse_depth = inverse_depths(self.triangulator(self.spec.orientation)(coarse.proj_map, coarse.valid),
+                                           self.calibration.projector.matrix)
+        decoded = fringe.refine(stripes, demod, carriers, self.spec, image=image, inverse_depth=inverse_depth,
                                 border_line=None if lines is None else lines.proj_map, **self.fringe_options)
         if lines is not None:
             decoded = prefer_borders(decoded, lines.proj_map, self.spec) if self.spec.phase_carriers else lines
