@@ -121,17 +121,20 @@ class ChannelLevels:
     depth_gain: NDArray[np.float64] | None = None
     depth_reference: NDArray[np.float64] | None = None
 
-    def gains(self, inverse_depth: NDArray[np.floating]) -> NDArray[np.float64]:
+    def gains(self, inverse_depth: NDArray[np.floating], dtype: type = np.float64) -> NDArray[np.floating]:
         """Each phase carrier's gain at pixels of `inverse_depth` (1/mm, any shape; NaN: the
-        reference depth's): ``(N, *shape)``."""
-        shape = (self.gain.size, *np.shape(inverse_depth))
+        reference depth's): ``(N, *shape)`` of `dtype`, held within `MIN_GAIN_SHARE` of the
+        reference depth's and its inverse."""
+        depth = np.asarray(inverse_depth)
+        out = np.empty((self.gain.size, *depth.shape), dtype=dtype)
         if self.depth_gain is None or self.depth_reference is None:
-            return np.broadcast_to(self.gain.reshape(-1, *[1] * np.ndim(inverse_depth)), shape)
-        centre, scale, low, high = self.depth_reference
-        t = np.clip(np.nan_to_num((np.asarray(inverse_depth, np.float64) - centre) / scale), low, high)[None]
-        a, b = (self.depth_gain[:, k].reshape(-1, *[1] * np.ndim(inverse_depth)) for k in (0, 1))
-        base = self.gain.reshape(-1, *[1] * np.ndim(inverse_depth))
-        return np.clip(base + a * t + b * t * t, MIN_GAIN_SHARE * base, base / MIN_GAIN_SHARE)
+            out[:] = self.gain.reshape(-1, *[1] * depth.ndim)
+            return out
+        centre, scale, low, high = (dtype(v) for v in self.depth_reference)
+        t = np.clip(np.nan_to_num((depth.astype(dtype) - centre) / scale), low, high)
+        for k, (g, (a, b)) in enumerate(zip(self.gain.astype(dtype), self.depth_gain.astype(dtype))):
+            np.clip(g + t * (a + b * t), dtype(MIN_GAIN_SHARE) * g, g / dtype(MIN_GAIN_SHARE), out=out[k])
+        return out
 
 
 def crosstalk(spec: PatternSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -359,15 +362,10 @@ def relevelled(envelopes: list[NDArray[np.float32]], dc: NDArray[np.float32], le
     gain(z)``.  The envelopes themselves where the levels do not change with depth."""
     if levels.depth_gain is None or levels.depth_reference is None:
         return envelopes
-    centre, scale, low, high = levels.depth_reference
-    t = np.clip(np.nan_to_num((inverse_depth.astype(np.float32) - np.float32(centre)) / np.float32(scale)),
-                low, high).astype(np.float32)
     d = np.maximum(dc, np.float32(1e-6))
     out = [np.empty_like(e) for e in envelopes]
-    for k in range(levels.gain.size):
-        g = np.float32(levels.gain[k])
-        a, b = (np.float32(v) for v in levels.depth_gain[k])
-        ratio = g / np.clip(g + t * (a + b * t), np.float32(MIN_GAIN_SHARE) * g, g / np.float32(MIN_GAIN_SHARE))
+    for k, local in enumerate(levels.gains(inverse_depth, np.float32)):
+        ratio = np.float32(levels.gain[k]) / local
         d_offset = d * np.float32(levels.offset[k])
         for source, target in zip(envelopes, out):
             np.subtract(source[k], d_offset, out=target[k])
