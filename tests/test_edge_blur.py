@@ -20,8 +20,8 @@ REAL_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pr
 def checkered_lines(blur, *, lines=40, width=800, window=40, square=57, noise=0.002, seed=0):
     """Lines of four carriers (periods window / k, random phases) times a 0.25 / 0.9 checker of
     `square` px (offset per line), blurred by a Gaussian of `blur` px (one per line, or one for
-    all) as a camera blurs the product, with noise: (image, windows, the steps' pixels).  The squares change between pixels
-    ``x - 1`` and ``x``, so each edge's middle lies at ``x - 1/2``."""
+    all) as a camera blurs the product, with noise: (image, windows, the steps' pixels).  The
+    squares change between pixels ``x - 1`` and ``x``, so each edge's middle lies at ``x - 1/2``."""
     rng = np.random.default_rng(seed)
     x = np.arange(width)
     image, steps = np.empty((lines, width), np.float32), np.zeros((lines, width), bool)
