@@ -230,6 +230,9 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
     the current levels; each carrier's least-squares fit of ``ratio_n / m`` on ``1, I_n,
     P_n``.  A scene whose phases cover the circle converges in a few tens of rounds, one that
     shows only part of it (a small object) in up to a few hundred, hence the small sample.
+    With `inverse_depth`, once those levels settle (or after `max_iterations` rounds) the fit
+    goes on with each gain a quadratic in the samples' scaled inverse depth and the crosstalk
+    kept (`ChannelLevels.depth_gain`), for up to `max_iterations` more rounds.
 
     Parameters
     ----------
@@ -293,9 +296,10 @@ def channel_levels(ratios: NDArray[np.float32], mask: NDArray[np.bool_], spec: P
             fits = np.array([np.linalg.lstsq(np.stack([np.ones_like(f), f, p], axis=1), r, rcond=None)[0]
                              for f, p, r in zip(fringe, products, scaled)])
             new_offset, new_gain, weighted, depth_gain = fits[:, 0], np.maximum(fits[:, 1], 1e-6), fits[:, 2], None
-        change = np.max(np.abs(np.concatenate([new_gain - gain, new_offset - offset, weighted - kappa * gain,
-                                               (depth_gain - levels.depth_gain).ravel() if with_depth
-                                               else np.zeros(0)]))) / np.max(new_gain)
+        moved = [new_gain - gain, new_offset - offset, weighted - kappa * gain]
+        if with_depth:
+            moved.append((depth_gain - levels.depth_gain).ravel())
+        change = np.max(np.abs(np.concatenate(moved))) / np.max(new_gain)
         levels = ChannelLevels(gain=new_gain, offset=new_offset, crosstalk=weighted / new_gain, depth_gain=depth_gain,
                                depth_reference=reference if with_depth else None)
         if change < tolerance or rounds >= max_iterations:

@@ -1717,9 +1717,10 @@ def _blend_weights(sigma: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArra
 def _projector_pad(conditions: Conditions, focal_px: float) -> int:
     """Projector pixels that blurred light spreads past the image edge (4 sigma; with a depth of
     field, of the blur at half or twice the focus distance)."""
-    focus = conditions.projector_focus_mm
-    sigma = float(defocus_blur(np.float64(focus / 2 if focus else 1.0), in_focus_px=conditions.projector_blur_px,
-                               focus_mm=focus, aperture_mm=conditions.projector_aperture_mm, focal_px=focal_px))
+    focus, sigma = conditions.projector_focus_mm, conditions.projector_blur_px
+    if focus is not None:
+        sigma = float(defocus_blur(focus / 2, in_focus_px=sigma, focus_mm=focus,
+                                   aperture_mm=conditions.projector_aperture_mm, focal_px=focal_px))
     return math.ceil(4 * sigma)
 
 
