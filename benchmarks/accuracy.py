@@ -81,6 +81,12 @@ def pattern_specs(projector: tuple[int, int], quick: bool) -> dict[str, patterns
         for spacing in (40, 48, 64):
             specs[f"sliscan 4-bit (spacing {spacing})"] = patterns.default_spec(
                 projector, carriers=patterns.scale_carriers(tuple(spacing * k for k in (4, 3, 2, 1)), width))
+        # the thesis's bit order (most significant bit on the lowest carrier, least on the
+        # highest: an unclear least significant bit costs at most one stripe, and the highest
+        # carrier is the one a projector's blur weakens most; fifty-first session, docs/design.md,
+        # "The bit order")
+        for name in ("sliscan 4-bit", "sliscan 4-bit + phase"):
+            specs[f"{name} (thesis bit order)"] = specs[name].with_(carriers=tuple(sorted(specs[name].carriers)))
         for bits in (6, 8):
             carriers = tuple(k * width / 8 / bits for k in range(1, bits + 1))
             specs[f"thesis-style {bits}-bit"] = patterns.PatternSpec(
