@@ -708,9 +708,10 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
 #: share only spares them the second pass's time (a 5 MP decode: 1.3 s).
 FOLLOW_BLUR_BELOW = 0.85
 #: `blur_gains` fits a blur over neighbourhoods of this share of the frame's width (a
-#: Gaussian's sigma): on the 960x720 and 1296x972 spheres under a 16 mm projector aperture 0.03
-#: recovered 1-2 points more than 0.06, but lost 0.3-0.7 points where the blur barely varies
-#: (an 8 mm aperture), 0.06 within 0.1 point of nothing.
+#: Gaussian's sigma).  Measured with the prototype (every frame decoded twice; docs/design.md,
+#: "Bit levels that follow the blur") on the 960x720 and 1296x972 spheres: under a 16 mm
+#: projector aperture 0.03 recovered 1-2 points more than 0.06, but lost 0.3-0.7 points where
+#: the blur barely varies (an 8 mm aperture), 0.06 within 0.1 point of nothing.
 BLUR_GAIN_SCALE = 0.05
 #: ... from the carriers whose clear "on" pixels make up at least this share of the
 #: neighbourhood (by the Gaussian's weights) ...
