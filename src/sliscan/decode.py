@@ -754,15 +754,20 @@ def blur_gains(levels: NDArray[np.float32], lit: NDArray[np.bool_], carriers: tu
     step = max(1, int(scale_px // 4))
     rows, cols = -(-height // step), -(-width // step)
 
-    def coarse(a: NDArray[np.float32]) -> NDArray[np.float64]:
-        """Block sums on the `step` grid, smoothed by the neighbourhood's Gaussian."""
-        padded = np.zeros((rows * step, cols * step), np.float32)
-        padded[:height, :width] = a
-        sums = padded.reshape(rows, step, cols, step).sum(axis=(1, 3), dtype=np.float64)
+    def smoothed(sums: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Sums on the `step` grid smoothed by the neighbourhood's Gaussian."""
         return scipy.ndimage.gaussian_filter(sums, scale_px / step, mode="constant")
 
+    def coarse(a: NDArray[np.float32]) -> NDArray[np.float64]:
+        """`smoothed` block sums of `a` ``(H, W)``."""
+        padded = np.zeros((rows * step, cols * step), np.float32)
+        padded[:height, :width] = a
+        return smoothed(padded.reshape(rows, step, cols, step).sum(axis=(1, 3), dtype=np.float64))
+
     f2 = (np.asarray(carriers, np.float64) / max(carriers)) ** 2
-    area = coarse(np.ones(lit.shape, np.float32))
+    block_rows = np.minimum(step, height - step * np.arange(rows))  # the frame's pixels in each block
+    block_cols = np.minimum(step, width - step * np.arange(cols))
+    area = smoothed(np.outer(block_rows, block_cols).astype(np.float64))
     sw = swx = swy = swxx = swxy = np.zeros((rows, cols))
     for n, x in enumerate(f2):
         on = lit & (levels[n] > 0.5)  # NaN is not on
