@@ -9,7 +9,7 @@ from sliscan.demodulate import demodulate
 from sliscan.evaluate import accuracy
 from sliscan.patterns import code_bits, stripe_codes
 from sliscan.pipeline import Scanner
-from sliscan.stripe_order import OrderCosts, anchored_runs, decode_by_order, stripe_direction
+from sliscan.stripe_order import OrderCosts, anchored_runs, decode_by_order, reversed_runs, stripe_direction
 
 from order_reference import decode_column, evidence, transitions
 
@@ -55,6 +55,27 @@ def test_kernels_equal_the_dense_reference(rng):
         np.testing.assert_array_equal(stripe[sure, x], expected[sure], err_msg=f"column {x}")
         np.testing.assert_allclose(margin[:, x], ref_margin, atol=2e-3, rtol=1e-4, err_msg=f"column {x}")
         np.testing.assert_allclose(misfit[sure, x], ref_misfit[sure], atol=1e-3, rtol=1e-4, err_msg=f"column {x}")
+
+
+def test_bit_gains_divide_each_bits_noise(rng):
+    """Envelopes divided by per-bit gains (`decode`'s `follow_blur`) carry their noise divided
+    by the same gains: with gains constant per bit that is each bit's span times its gain (bit
+    `n`'s noise is ``noise / (span[n] gain[n])``), so both decode the same, margins within
+    float32's rounding; the rows orientation and its transpose alike."""
+    truth = staircase(h=120, w=45)
+    levels = ideal_levels(truth, gain=0.6) + rng.normal(0, 0.1, (SPEC.bits, *truth.shape)).astype(np.float32)
+    noise = rng.uniform(0.01, 0.05, truth.shape).astype(np.float32)
+    lit = np.ones(truth.shape, bool)
+    gain = np.array([0.3, 0.5, 0.8, 1.0])
+    gains = np.broadcast_to(gain[:, None, None], levels.shape).astype(np.float32)
+    for spec, frame in ((SPEC, lambda a: a), (SPEC.with_(orientation="columns"),
+                                              lambda a: np.swapaxes(a, -1, -2).copy())):
+        divided = decode_by_order(frame(levels), frame(noise), SPAN, frame(lit), spec, 1, bit_gains=frame(gains))
+        spans = decode_by_order(frame(levels), frame(noise), SPAN * gain, frame(lit), spec, 1)
+        np.testing.assert_array_equal(divided[0], spans[0])
+        np.testing.assert_allclose(divided[1], spans[1], atol=1e-3)
+        plain = decode_by_order(frame(levels), frame(noise), SPAN, frame(lit), spec, 1)
+        assert np.abs(plain[1] - spans[1]).max() > 1  # the gains do change the margins
 
 
 def test_a_dim_surface_decodes_by_its_code_not_its_level(rng):
@@ -174,3 +195,34 @@ def test_anchored_runs_keep_the_runs_their_own_pixels_vouch_for():
     columns = SPEC.with_(orientation="columns")
     np.testing.assert_array_equal(anchored_runs(stripe.T, anchors.T, columns, min_share=0.3),
                                   anchored_runs(stripe, anchors, SPEC, min_share=0.3).T)
+
+
+def column(*runs):
+    """A column ``(H, 1)`` of stripes from ``(stripe, pixels)`` runs."""
+    return np.concatenate([np.full(n, s, np.int16) for s, n in runs])[:, None]
+
+
+def test_reversed_runs_drop_a_mirrored_chain_but_not_one_step_back():
+    """Down a column the stripes come in order; a chain of steps back (a lost bit read as its
+    mirror: 6, 5, 4, 3 after 0-3 and 6) loses every run entered going back, the gaps between them
+    skipped, and keeps the chain's head (6, entered going forward); one step back alone (a thin
+    object before a wall) stays, and so do runs shorter than a quarter of a stripe's mean height
+    (3 pixels at least, here) that step back, a border read early or late, and a wrong excursion
+    (a jump, a step back, a jump back: no chain of small steps back, so the right run after it is
+    not blamed); direction -1 reverses the test; columns are the transpose."""
+    chain = column((-1, 1), (0, 8), (1, 8), (2, 8), (-1, 2), (3, 8), (6, 8), (5, 8), (-1, 2), (4, 8), (3, 8), (-1, 53))
+    expected = np.zeros(chain.shape, bool)
+    expected[43:69] = chain[43:69] >= 0
+    np.testing.assert_array_equal(reversed_runs(chain, SPEC, 1), expected)
+    flipped = np.where(chain >= 0, 14 - chain, -1).astype(np.int16)  # the stripes numbered up the column
+    np.testing.assert_array_equal(reversed_runs(flipped, SPEC, -1), expected)
+    edge = column((0, 20), (1, 20), (5, 20), (2, 20), (3, 20), (4, 20))
+    assert not reversed_runs(edge, SPEC, 1).any()
+    jitter = column((9, 20), (10, 20), (11, 2), (10, 1), (11, 30), (12, 2), (11, 30), (9, 1), (12, 14))
+    assert not reversed_runs(jitter, SPEC, 1).any()
+    excursion = column((4, 20), (11, 20), (10, 20), (5, 20), (6, 20), (7, 20))  # 11 and 10 wrong, 5 right
+    assert not reversed_runs(excursion, SPEC, 1).any()
+    assert not reversed_runs(chain, SPEC, 0).any()
+    columns = SPEC.with_(orientation="columns")
+    both = np.hstack([chain, chain]).astype(np.int16)
+    np.testing.assert_array_equal(reversed_runs(both.T.copy(), columns, 1), reversed_runs(both, SPEC, 1).T)
