@@ -684,8 +684,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         Decided by order, drop the runs that come in reverse order along the phase direction
         (`sliscan.stripe_order.reversed_runs`): a bit lost where every stripe has it on, read
         as its mirror image all the way down a column (a projector focused on near objects
-        before a far wall: 4 % of the lit pixels more than three stripes off, 0.01 % without
-        them).
+        before a far wall: 3-4 % of the lit pixels more than three stripes off; under 0.01 %
+        with those runs dropped).
     follow_blur : bool
         Where fewer than `FOLLOW_BLUR_BELOW` of the lit pixels decode, decode again with each
         bit carrier's envelope divided by its gain there relative to the frame's
