@@ -1,5 +1,7 @@
 """Decoding the stripes by the order they come in along the phase direction (`sliscan.stripe_order`)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,8 @@ from sliscan.demodulate import demodulate
 from sliscan.evaluate import accuracy
 from sliscan.patterns import code_bits, stripe_codes
 from sliscan.pipeline import Scanner
-from sliscan.stripe_order import OrderCosts, anchored_runs, decode_by_order, reversed_runs, stripe_direction
+from sliscan.stripe_order import (OrderCosts, anchored_runs, decode_by_order, reversed_runs, rig_direction,
+                                  stripe_direction)
 
 from order_reference import decode_column, evidence, transitions
 
@@ -226,3 +229,24 @@ def test_reversed_runs_drop_a_mirrored_chain_but_not_one_step_back():
     columns = SPEC.with_(orientation="columns")
     both = np.hstack([chain, chain]).astype(np.int16)
     np.testing.assert_array_equal(reversed_runs(both.T.copy(), columns, 1), reversed_runs(both, SPEC, 1).T)
+
+
+def test_rig_direction_follows_the_camera_and_the_pattern():
+    """The virtual rig (projector above the camera) numbers the stripes down the camera's rows,
+    as the ground truth of a capture shows; a camera turned upside down (its rows read bottom
+    up) reverses it, and so does a mirrored one for a pattern in columns."""
+    rig = simulate.virtual_rig(camera_size=(320, 240), projector_size=(256, 192))
+    spec = patterns.default_spec((256, 192))
+    capture = simulate.render(rig, simulate.plane_scene(), patterns.render_pattern(spec), simulate.Conditions(seed=0))
+    truth = np.where(capture.truth.lit, patterns.stripe_of_line(np.nan_to_num(capture.truth.proj[..., 1], nan=-1), spec),
+                     -1)
+    assert rig_direction(rig.calibration, spec) == stripe_direction(truth, truth >= 0, spec) == 1
+    width, height = rig.calibration.camera.size
+    camera = rig.calibration.camera
+    upside_down = np.array([[1.0, 0, 0], [0, -1, height], [0, 0, 1]]) @ camera.matrix
+    mirrored = np.array([[-1.0, 0, 0], [0, 1, 0], [0, 0, 1]]) @ camera.matrix + np.outer([width, 0, 0], camera.matrix[2])
+    turned = dataclasses.replace(rig.calibration, camera=dataclasses.replace(camera, matrix=upside_down))
+    assert rig_direction(turned, spec) == -1
+    columns = spec.with_(orientation="columns")
+    flipped = dataclasses.replace(rig.calibration, camera=dataclasses.replace(camera, matrix=mirrored))
+    assert rig_direction(flipped, columns) == -rig_direction(rig.calibration, columns) != 0

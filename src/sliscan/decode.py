@@ -620,7 +620,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
            max_residual: float = 0.6, max_misfit: float = 0.25, zero_code_dc: float = ZERO_STRIPE_MIN_DC,
            neighbour_radius: int = 3, border_reach: int = 10, order: OrderCosts | bool = True,
            min_margin: float = 1.0, max_order_misfit: float = 8.0, min_anchored: float = 0.25,
-           drop_reversed: bool = True, follow_blur: bool = True) -> Decoded:
+           drop_reversed: bool = True, direction: int | None = None, follow_blur: bool = True) -> Decoded:
     """Binarise the envelopes and Gray-decode them into stripes and projector lines.
 
     Parameters
@@ -686,6 +686,13 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         as its mirror image all the way down a column (a projector focused on near objects
         before a far wall: 3-4 % of the lit pixels more than three stripes off; under 0.01 %
         with those runs dropped).
+    direction : {1, -1, 0} or None
+        Decided by order, whether the stripe numbers grow (+1) or fall (-1) with the camera
+        coordinate along the phase direction: the rig's (`sliscan.stripe_order.rig_direction`,
+        as `Scanner` passes it); None reads it from the per-pixel decisions
+        (`sliscan.stripe_order.stripe_direction`), which a lost bit can make undecided (0: the
+        previous stripe as cheap as the next, nothing dropped as reversed) where it reads a large
+        part of the frame in reverse.
     follow_blur : bool
         Where fewer than `FOLLOW_BLUR_BELOW` of the lit pixels decode, decode again with each
         bit carrier's envelope divided by its gain there relative to the frame's
@@ -701,7 +708,7 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
                    stripe_borders=stripe_borders, max_residual=max_residual, max_misfit=max_misfit,
                    zero_code_dc=zero_code_dc, neighbour_radius=neighbour_radius, border_reach=border_reach,
                    order=order, min_margin=min_margin, max_order_misfit=max_order_misfit, min_anchored=min_anchored,
-                   drop_reversed=drop_reversed)
+                   drop_reversed=drop_reversed, direction=direction)
     first = _decode_once(demod, spec, **options)
     lit = int(first.lit.sum())
     if not follow_blur or spec.bits < 2 or not lit or first.valid.sum() >= FOLLOW_BLUR_BELOW * lit:
@@ -801,7 +808,7 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
                  min_snr: float | None, stripe_borders: bool, max_residual: float, max_misfit: float,
                  zero_code_dc: float, neighbour_radius: int, border_reach: int, order: OrderCosts | bool,
                  min_margin: float, max_order_misfit: float, min_anchored: float, drop_reversed: bool,
-                 bit_gains: NDArray[np.float32] | None = None) -> Decoded:
+                 direction: int | None, bit_gains: NDArray[np.float32] | None = None) -> Decoded:
     """`decode`'s one pass over the envelopes as they are (see `decode` for the parameters;
     `bit_gains` ``(K, H, W)``: what the bits' envelopes were divided by, so bit `n`'s noise is
     ``demod.noise / bit_gains[n]``)."""
@@ -826,7 +833,8 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
         costs = order if isinstance(order, OrderCosts) else OrderCosts()
         noise = np.zeros(dc.shape, np.float32) if demod.noise is None else demod.noise / reference
         anchors = np.where(valid, stripe, np.int16(-1))
-        direction = stripe_direction(stripe, valid, spec)
+        if direction is None:
+            direction = stripe_direction(stripe, valid, spec)
         stripe, margin, misfit = decode_by_order(levels, noise, scale.span, lit, spec, direction, costs,
                                                  bit_gains=bit_gains)
         valid = (stripe >= 0) & (margin >= min_margin) & (misfit <= max_order_misfit)

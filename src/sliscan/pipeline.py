@@ -30,6 +30,7 @@ from sliscan.pmp import ProjectorMap
 from sliscan.reconstruct import MeasurableTest, TestArgs, Triangulator, device_centre, is_measurable
 from sliscan.sequences import decode_frames
 from sliscan.staircase import BESIDE_REACH, interpolate_lines, prefer_borders, prefer_centred
+from sliscan.stripe_order import rig_direction
 from sliscan.types import MULTI_FRAME_KINDS, Calibration, PatternSpec, ScanResult
 
 
@@ -553,6 +554,12 @@ class Scanner:
             view, gain = normalise_lines(view, carriers, estimate=self.albedo, camera_blur=self.camera_blur)
         return demodulate_baseband(view, self._plan[1], albedo=gain), carriers
 
+    def phase_direction(self) -> int:
+        """Whether the stripe numbers grow (+1) or fall (-1) down the camera's lines along the
+        phase direction, from the rig (`sliscan.stripe_order.rig_direction`): what `decode`
+        decides the stripes by order with."""
+        return rig_direction(self.calibration, self.spec)
+
     def stripe_geometry(self) -> fastscan.StripeGeometry:
         """The rig's `sliscan.fastscan.StripeGeometry` for the pattern, built on first use and kept."""
         if self._geometry is None:
@@ -618,7 +625,7 @@ class Scanner:
 
         def decoded_lines(envelopes: Demodulated) -> tuple[Decoded, Decoded | None]:
             """One set of envelopes decoded, and its lines between the located stripe borders."""
-            found = decode(envelopes, self.spec, **self.decode_options)
+            found = decode(envelopes, self.spec, **{"direction": self.phase_direction(), **self.decode_options})
             if not self.interpolate_stripes:
                 return found, None
             stripes_only = not self.spec.phase_carriers  # else the phase places the runs without two borders

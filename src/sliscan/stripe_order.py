@@ -44,7 +44,8 @@ from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
 from sliscan.patterns import code_bits, stripe_codes
-from sliscan.types import PatternSpec
+from sliscan.reconstruct import device_centre
+from sliscan.types import Calibration, PatternSpec
 
 
 @dataclass(frozen=True)
@@ -100,6 +101,38 @@ def stripe_direction(stripe: NDArray[np.integer], valid: NDArray[np.bool_], spec
     if down >= 100 and down >= 3 * up:
         return -1
     return 0
+
+
+def rig_direction(calibration: Calibration, spec: PatternSpec) -> int:
+    """`stripe_direction` as the rig's geometry gives it: +1 if the projector line (and so the
+    stripe number) grows with the camera coordinate along the phase direction, -1 if it falls
+    (0 for a degenerate rig).
+
+    Two camera pixels 8 px apart along the phase direction at the frame's centre are taken to
+    world points on their rays four baselines in front of the camera (the pinhole matrices; the
+    ordering constraint makes the sign the same at any depth both devices see) and projected into
+    the projector.  Unlike the per-pixel decisions it holds where a lost bit reads a large part of
+    the frame in reverse (a defocused projector's wall: a third of the decided pairs stepping
+    back).
+    """
+    camera, projector = calibration.camera.matrix, calibration.projector.matrix
+    origin = device_centre(camera)
+    reach = 4 * np.linalg.norm(device_centre(projector) - origin)
+    front = np.sign(np.linalg.det(camera[:, :3]))  # the sign of a point's depth in front of the camera
+    step = np.array([0.0, 8.0]) if spec.orientation == "rows" else np.array([8.0, 0.0])
+    middle = np.array(calibration.camera.size, dtype=np.float64) / 2
+    points = []
+    for pixel in (middle, middle + step):
+        on_ray = np.linalg.pinv(camera) @ np.append(pixel, 1.0)
+        ray = (on_ray[:3] - origin * on_ray[3]) * np.sign(on_ray[3]) if abs(on_ray[3]) > 1e-12 else on_ray[:3]
+        ray /= np.linalg.norm(ray)
+        if front * (camera @ np.append(origin + ray, 1.0))[2] < 0:
+            ray = -ray
+        points.append(origin + reach * ray)
+    seen = np.array(points) @ projector[:, :3].T + projector[:, 3]
+    lines = seen[:, 1 if spec.orientation == "rows" else 0] / seen[:, 2]
+    change = lines[1] - lines[0]
+    return 0 if abs(change) < 1e-6 else int(np.sign(change))
 
 
 #: Fast-math flags of the kernels: everything but "no NaNs" and "no infinities" (the recursion
