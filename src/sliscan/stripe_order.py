@@ -118,18 +118,14 @@ def rig_direction(calibration: Calibration, spec: PatternSpec) -> int:
     camera, projector = calibration.camera.matrix, calibration.projector.matrix
     origin = device_centre(camera)
     reach = 4 * np.linalg.norm(device_centre(projector) - origin)
-    front = np.sign(np.linalg.det(camera[:, :3]))  # the sign of a point's depth in front of the camera
     step = np.array([0.0, 8.0]) if spec.orientation == "rows" else np.array([8.0, 0.0])
     middle = np.array(calibration.camera.size, dtype=np.float64) / 2
-    points = []
-    for pixel in (middle, middle + step):
-        on_ray = np.linalg.pinv(camera) @ np.append(pixel, 1.0)
-        ray = (on_ray[:3] - origin * on_ray[3]) * np.sign(on_ray[3]) if abs(on_ray[3]) > 1e-12 else on_ray[:3]
-        ray /= np.linalg.norm(ray)
-        if front * (camera @ np.append(origin + ray, 1.0))[2] < 0:
-            ray = -ray
-        points.append(origin + reach * ray)
-    seen = np.array(points) @ projector[:, :3].T + projector[:, 3]
+    pixels = np.array([[*middle, 1.0], [*(middle + step), 1.0]])
+    # a pixel's ray is M^-1 [x, y, 1] from the centre (M the matrix's left 3x3), in front of the
+    # camera when det(M) is positive: the point's depth is det(M) times its homogeneous w, here 1
+    rays = np.linalg.solve(camera[:, :3], pixels.T).T * np.sign(np.linalg.det(camera[:, :3]))
+    points = origin + reach * rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    seen = points @ projector[:, :3].T + projector[:, 3]
     lines = seen[:, 1 if spec.orientation == "rows" else 0] / seen[:, 2]
     change = lines[1] - lines[0]
     return 0 if abs(change) < 1e-6 else int(np.sign(change))
@@ -367,6 +363,7 @@ def _reversed_columns(stripe: NDArray[np.int16], direction: int, min_run: int, m
     h = stripe.shape[0]
     label, first, last, size = (np.empty(h, np.int16), np.empty(h, np.intp), np.empty(h, np.intp),
                                 np.empty(h, np.intp))
+    back = np.zeros(h, np.bool_)  # whether each long run is entered by a step back
     for x in lines:
         out[:, x] = False
         runs = 0  # runs of one stripe, pixels without a stripe skipped
@@ -389,10 +386,9 @@ def _reversed_columns(stripe: NDArray[np.int16], direction: int, min_run: int, m
             label[long], first[long], last[long] = label[i], first[i], last[i]
             long += 1
         for i in range(1, long):
-            back = -max_step <= (label[i] - label[i - 1]) * direction < 0
-            before = i >= 2 and -max_step <= (label[i - 1] - label[i - 2]) * direction < 0
-            after = i + 1 < long and -max_step <= (label[i + 1] - label[i]) * direction < 0
-            if back and (before or after):
+            back[i] = -max_step <= (label[i] - label[i - 1]) * direction < 0
+        for i in range(1, long):
+            if back[i] and (back[i - 1] or (i + 1 < long and back[i + 1])):
                 for y in range(first[i], last[i] + 1):
                     out[y, x] = stripe[y, x] == label[i]
 
