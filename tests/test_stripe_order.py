@@ -207,28 +207,43 @@ def column(*runs):
 
 def test_reversed_runs_drop_a_mirrored_chain_but_not_one_step_back():
     """Down a column the stripes come in order; a chain of steps back (a lost bit read as its
-    mirror: 6, 5, 4, 3 after 0-3 and 6) loses every run entered going back, the gaps between them
-    skipped, and keeps the chain's head (6, entered going forward); one step back alone (a thin
-    object before a wall) stays, and so do runs shorter than a quarter of a stripe's mean height
-    (3 pixels at least, here) that step back, a border read early or late, and a wrong excursion
-    (a jump, a step back, a jump back: no chain of small steps back, so the right run after it is
-    not blamed); direction -1 reverses the test; columns are the transpose."""
+    mirror: 5, 4, 3 after 0-3 and 6) is found on every run entered going back, the gaps between
+    them skipped, and the chain's head (6, entered going forward) is left alone; the most
+    significant bit set again reads it 8, 9, 10 (mirror 13 - s of the 15 stripes), forward from
+    its head, and no other bit does, so those are its restored stripes.  One step back alone (a
+    thin object before a wall) stays, and so do runs shorter than a quarter of a stripe's mean
+    height (3 pixels at least, here) that step back, a border read early or late, and a wrong
+    excursion (a jump, a step back, a jump back: no chain of small steps back, so the right run
+    after it is not blamed); a chain that no one bit turns forward (4, 3 after 6: 9 is three
+    stripes on) is found but not restored; the column upside down with direction -1 gives the
+    same upside down; columns are the transpose."""
+    def runs(stripe, spec=SPEC, direction=1):
+        reverse, restored = reversed_runs(stripe, spec, direction)
+        np.testing.assert_array_equal(restored >= 0, reverse & (restored >= 0))  # restored only where reversed
+        return reverse, restored
+
     chain = column((-1, 1), (0, 8), (1, 8), (2, 8), (-1, 2), (3, 8), (6, 8), (5, 8), (-1, 2), (4, 8), (3, 8), (-1, 53))
     expected = np.zeros(chain.shape, bool)
     expected[43:69] = chain[43:69] >= 0
-    np.testing.assert_array_equal(reversed_runs(chain, SPEC, 1), expected)
-    flipped = np.where(chain >= 0, 14 - chain, -1).astype(np.int16)  # the stripes numbered up the column
-    np.testing.assert_array_equal(reversed_runs(flipped, SPEC, -1), expected)
+    reverse, restored = runs(chain)
+    np.testing.assert_array_equal(reverse, expected)
+    np.testing.assert_array_equal(restored, np.where(expected, 13 - chain, -1))
+    reverse, restored = runs(chain[::-1].copy(), direction=-1)  # the stripes numbered up the column
+    np.testing.assert_array_equal(reverse, expected[::-1])
+    np.testing.assert_array_equal(restored, np.where(expected, 13 - chain, -1)[::-1])
+    unrestorable = column((0, 20), (1, 20), (2, 20), (6, 20), (4, 20), (3, 20))
+    reverse, restored = runs(unrestorable)
+    assert reverse[80:].all() and not reverse[:80].any() and (restored == -1).all()
     edge = column((0, 20), (1, 20), (5, 20), (2, 20), (3, 20), (4, 20))
-    assert not reversed_runs(edge, SPEC, 1).any()
     jitter = column((9, 20), (10, 20), (11, 2), (10, 1), (11, 30), (12, 2), (11, 30), (9, 1), (12, 14))
-    assert not reversed_runs(jitter, SPEC, 1).any()
     excursion = column((4, 20), (11, 20), (10, 20), (5, 20), (6, 20), (7, 20))  # 11 and 10 wrong, 5 right
-    assert not reversed_runs(excursion, SPEC, 1).any()
-    assert not reversed_runs(chain, SPEC, 0).any()
+    for stripe, direction in ((edge, 1), (jitter, 1), (excursion, 1), (chain, 0)):
+        reverse, restored = runs(stripe, direction=direction)
+        assert not reverse.any() and (restored == -1).all()
     columns = SPEC.with_(orientation="columns")
     both = np.hstack([chain, chain]).astype(np.int16)
-    np.testing.assert_array_equal(reversed_runs(both.T.copy(), columns, 1), reversed_runs(both, SPEC, 1).T)
+    for by_rows, by_columns in zip(runs(both), runs(both.T.copy(), columns)):
+        np.testing.assert_array_equal(by_columns, by_rows.T)
 
 
 def test_rig_direction_follows_the_camera_and_the_pattern():

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sliscan._threads import over_rows
-from sliscan.patterns import code_bits, stripe_codes
+from sliscan.patterns import code_bits, code_to_stripe, stripe_codes
 from sliscan.reconstruct import device_centre
 from sliscan.types import Calibration, PatternSpec
 
@@ -357,15 +357,17 @@ def anchored_runs(stripe: NDArray[np.int16], anchors: NDArray[np.int16], spec: P
 
 
 @numba.njit(cache=True, nogil=True)
-def _reversed_columns(stripe: NDArray[np.int16], direction: int, min_run: int, max_step: int,
-                      lines: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
-    """`reversed_runs` for the given columns (the phase direction along axis 0; -1: no stripe)."""
+def _reversed_columns(stripe: NDArray[np.int16], min_run: int, max_step: int, lost: NDArray[np.int16],
+                      lines: NDArray[np.intp], out: NDArray[np.bool_], restored: NDArray[np.int16]) -> None:
+    """`reversed_runs` for the given columns (the stripe numbers growing along axis 0; -1: no
+    stripe)."""
     h = stripe.shape[0]
     label, first, last, size = (np.empty(h, np.int16), np.empty(h, np.intp), np.empty(h, np.intp),
                                 np.empty(h, np.intp))
     back = np.zeros(h, np.bool_)  # whether each long run is entered by a step back
     for x in lines:
         out[:, x] = False
+        restored[:, x] = -1
         runs = 0  # runs of one stripe, pixels without a stripe skipped
         for y in range(h):
             s = stripe[y, x]
@@ -386,21 +388,61 @@ def _reversed_columns(stripe: NDArray[np.int16], direction: int, min_run: int, m
             label[long], first[long], last[long] = label[i], first[i], last[i]
             long += 1
         for i in range(1, long):
-            back[i] = -max_step <= (label[i] - label[i - 1]) * direction < 0
-        for i in range(1, long):
-            if back[i] and (back[i - 1] or (i + 1 < long and back[i + 1])):
+            back[i] = -max_step <= label[i] - label[i - 1] < 0
+        start = 1
+        while start < long:  # chains of runs entered by a step back (two at least), each after its head
+            end = start
+            while back[start] and end + 1 < long and back[end + 1]:
+                end += 1
+            if end == start:
+                start += 1
+                continue
+            bit = -1  # the one lost bit that, set again, makes the chain go forward from its head
+            for k in range(lost.shape[0]):
+                previous, forward = label[start - 1], True
+                for i in range(start, end + 1):
+                    again = lost[k, label[i]]
+                    forward = forward and again >= 0 and 1 <= again - previous <= max_step
+                    previous = again
+                if forward:
+                    bit = k if bit == -1 else -2
+            for i in range(start, end + 1):
                 for y in range(first[i], last[i] + 1):
-                    out[y, x] = stripe[y, x] == label[i]
+                    if stripe[y, x] == label[i]:
+                        out[y, x] = True
+                        restored[y, x] = lost[bit, label[i]] if bit >= 0 else -1
+            start = end + 1
 
 
-def reversed_runs(stripe: NDArray[np.int16], spec: PatternSpec, direction: int, *,
-                  min_share: float = 0.25, max_step: int = 2) -> NDArray[np.bool_]:
+def lost_bit_stripes(spec: PatternSpec) -> NDArray[np.int16]:
+    """The stripe each stripe is with one bit set again, ``(K, S)`` int16: entry ``[k, s]`` is the
+    stripe whose code is stripe `s`'s with bit `k` (most significant first) on, -1 where `s` has
+    it on already or no stripe has that code.
+
+    A bit lost where every stripe has it on reads the reflected Gray code's mirror: with the most
+    significant bit lost, 4-bit stripe 8 reads 7 and 12 reads 3.
+
+    >>> from sliscan.types import PatternSpec
+    >>> lost_bit_stripes(PatternSpec(projector_size=(1024, 768), bits=4))[0, [7, 3, 8]].tolist()
+    [8, 12, -1]
+    """
+    codes = stripe_codes(spec)
+    mask = (1 << np.arange(spec.bits - 1, -1, -1))[:, None]
+    again = code_to_stripe(codes[None, :] | mask, spec)
+    return np.where((codes[None, :] & mask) == 0, again, -1).astype(np.int16)
+
+
+def reversed_runs(stripe: NDArray[np.int16], spec: PatternSpec, direction: int, *, min_share: float = 0.25,
+                  max_step: int = 2) -> tuple[NDArray[np.bool_], NDArray[np.int16]]:
     """Pixels of `stripe` ``(H, W)`` (-1: none) on runs that come in reverse order along the
-    phase direction: entered by a step back (against `direction`, `stripe_direction`) of at most
-    `max_step` stripes next to another such step, counting only the runs of at least
-    `min_share` of a stripe's mean height in the frame (the frame's lines along the phase
-    direction over ``spec.stripes``; 3 pixels at least): the few pixels of a stripe border read
-    a stripe early or late, or a sliver by a limb, are skipped like pixels without a stripe.
+    phase direction, and the stripes they read with the lost bit set again.
+
+    A run is reversed when it is entered by a step back (against `direction`,
+    `stripe_direction`) of at most `max_step` stripes next to another such step, counting only
+    the runs of at least `min_share` of a stripe's mean height in the frame (the frame's lines
+    along the phase direction over ``spec.stripes``; 3 pixels at least): the few pixels of a
+    stripe border read a stripe early or late, or a sliver by a limb, are skipped like pixels
+    without a stripe.
 
     On a surface that both the camera and the projector see, the stripes come in order along
     the phase direction, and with the projector beside the camera along that direction a depth
@@ -408,20 +450,38 @@ def reversed_runs(stripe: NDArray[np.int16], spec: PatternSpec, direction: int, 
     the exception), so one step back is rare and two in a row are a mirror: a bit lost where
     every stripe has it on (the most significant bit on a carrier a defocused projector
     blurs away), which reads each stripe as the one before the last one read, all the way down a
-    column (one step back each, two where a stripe goes undecided).  The first run of such a
-    chain, entered going forward, is kept.  Steps back of more than `max_step` stripes do not
-    chain: a wrong excursion between right runs (a jump, a step back, a jump back) would take the
-    right run after it along (counting every step back, the thesis's smooth 5 MP sphere went 0.12
-    -> 0.15 % of its lit pixels more than one stripe off, RMS 10.8 -> 12.1 mm).  `direction` 0
-    marks nothing.
+    column (one step back each, two where a stripe goes undecided).  The lines are read the way
+    the stripe numbers grow (up the frame for `direction` -1, a camera upside down), and the run
+    before such a chain, entered going forward, is its head and is kept.  Steps back of more than `max_step`
+    stripes do not chain: a wrong excursion between right runs (a jump, a step back, a jump back)
+    would take the right run after it along (counting every step back, the thesis's smooth 5 MP
+    sphere went 0.12 -> 0.15 % of its lit pixels more than one stripe off, RMS 10.8 -> 12.1 mm).
+    `direction` 0 marks nothing.
+
+    Returns
+    -------
+    reversed : (H, W) bool array
+        The pixels of the chains' runs after their heads.
+    restored : (H, W) int16 array
+        Where exactly one bit (`lost_bit_stripes`), set again on every run of a chain, makes the
+        chain go forward from its head in steps of one to `max_step` stripes: the stripes so
+        read; -1 elsewhere.
     """
+    none = np.full(stripe.shape, -1, dtype=np.int16)
     if direction == 0:
-        return np.zeros(stripe.shape, dtype=bool)
-    s = np.ascontiguousarray(stripe if spec.orientation == "rows" else stripe.T, dtype=np.int16)
+        return np.zeros(stripe.shape, dtype=bool), none
+    def frame(a: NDArray) -> NDArray:  # the phase direction along axis 0, an involution
+        return a if spec.orientation == "rows" else a.T
+
+    def upward(a: NDArray) -> NDArray:  # the stripe numbers growing along axis 0, an involution
+        return a if direction > 0 else a[::-1]
+
+    s = np.ascontiguousarray(upward(frame(stripe)), dtype=np.int16)
     min_run = max(3, int(min_share * s.shape[0] / spec.stripes))
-    out = np.empty(s.shape, dtype=bool)
-    over_rows(lambda lines: _reversed_columns(s, int(direction), min_run, int(max_step), lines, out), s.shape[1])
-    return out if spec.orientation == "rows" else np.ascontiguousarray(out.T)
+    lost = lost_bit_stripes(spec)
+    out, restored = np.empty(s.shape, dtype=bool), np.empty(s.shape, dtype=np.int16)
+    over_rows(lambda lines: _reversed_columns(s, min_run, int(max_step), lost, lines, out, restored), s.shape[1])
+    return np.ascontiguousarray(frame(upward(out))), np.ascontiguousarray(frame(upward(restored)))
 
 
 def decode_by_order(levels: NDArray[np.float32], noise: NDArray[np.float32], span: NDArray[np.float64],
