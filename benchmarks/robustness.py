@@ -24,6 +24,10 @@ frames); classic Gray code with 4-step phase refinement, 7 bits on 8-row codes (
   (`simulate.Conditions.projector_focus_mm`): the sphere's front, 123 mm nearer, and the wall,
   200 mm farther, blurred more than its limbs (an 8 mm projector aperture: sigma 1.0 -> 1.3-1.5
   projector px);
+* objects focus: the projector's depth of field again, on the `objects` scene (two spheres, a
+  box and a lying cylinder 690-860 mm away before a wall at 1000 mm, which an aperture of 16 mm
+  blurs by a disc of about 6 projector px: there sliscan's pattern loses its most significant
+  bit where every stripe has it on);
 * surface slope: a plane tilted about x (depth along the stripes' direction, stripes
   compressed) and about y (carriers compressed), 0-60 degrees;
 * projector roll: the projector turned about its own optical axis, 0-10 degrees, as a rig's
@@ -128,13 +132,14 @@ def _checker(low: float, conditions: simulate.Conditions) -> Scene:
 FOCUS_MM = {"camera": 800.0, "projector": float(np.hypot(800.0, 200.0))}
 
 
-def _focused(device: str) -> Callable[[float, simulate.Conditions], Scene]:
-    """A factor's scene: the sphere, `device` ("camera" or "projector") focused on the working
-    point through an aperture of the level (mm; 0: in focus at every depth)."""
+def _focused(device: str, surface: Callable[[], simulate.Surface] = simulate.sphere_scene,
+             ) -> Callable[[float, simulate.Conditions], Scene]:
+    """A factor's scene: `surface` (the sphere), `device` ("camera" or "projector") focused on
+    the working point through an aperture of the level (mm; 0: in focus at every depth)."""
     def scene(aperture: float, conditions: simulate.Conditions) -> Scene:
         if aperture == 0:
-            return _sphere(conditions)
-        return _sphere(conditions, **{f"{device}_focus_mm": FOCUS_MM[device], f"{device}_aperture_mm": aperture})
+            return surface(), conditions
+        return surface(), conditions.with_(**{f"{device}_focus_mm": FOCUS_MM[device], f"{device}_aperture_mm": aperture})
     return scene
 
 
@@ -177,6 +182,8 @@ FACTORS = (
     Factor("projector focus", "projector aperture (mm; 0 = all in focus)", (0, 4, 8, 12, 16), (0, 8, 16),
            _focused("projector")),
     Factor("camera focus", "camera aperture (mm; 0 = all in focus)", (0, 3, 6, 9, 12), (0, 6, 12), _focused("camera")),
+    Factor("objects focus", "projector aperture (mm), objects before a wall", (0, 4, 8, 12, 16), (0, 8, 16),
+           _focused("projector", simulate.objects_scene)),
     Factor("slope x", "tilt about x (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("x")),
     Factor("slope y", "tilt about y (deg)", (0, 15, 30, 45, 60), (0, 30, 60), _tilt("y")),
     Factor("projector roll", "turn about its axis (deg)", (0, 1, 2, 3, 5, 10), (0, 3, 10),
