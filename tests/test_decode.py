@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sliscan import InputError, patterns, simulate
-from sliscan.decode import (ZERO_STRIPE_MIN_DC, FrameLevels, _zero_stripe, agrees_with_neighbours, blur_gains, decode,
+from sliscan.decode import (ZERO_STRIPE_MIN_DC, FrameLevels, _stripe_of_code, _zero_stripe, agrees_with_neighbours,
+                            blur_gains, decode, lost_bit_alternates,
                             two_means)
 from sliscan.demodulate import Demodulated
 from sliscan.demodulate import demodulate
@@ -376,3 +377,34 @@ def test_blur_gains_follow_a_blur_that_varies_across_the_frame():
     assert (levels[0][on[0, :, 0]][:, -60:] < 0.5).mean() > 0.5  # where its own bit is mostly unclear
     sharp = np.where(on, 0.9, 0.0) + rng.normal(0, 0.03, (4, height, width))
     assert np.abs(blur_gains(sharp.astype(np.float32), lit, carriers, scale_px=12.0) - 1).max() < 0.03
+
+
+def test_lost_bit_alternates_where_the_bit_is_lost_around_the_pixel():
+    """Left of column 60 the most significant bit is unclear on every lit pixel (lost), in
+    columns 60-119 on one pixel only, from column 120 on every other row and the next bit on the
+    rows between (two bits lost): a pixel whose one unclear bit is the most significant may be
+    the stripe with it flipped (sliscan's mirror, 13 - s) on the left only; never with two
+    unclear bits, with no clear bit on (a shadow a neighbour's light leaks into), or unlit."""
+    spec = patterns.default_spec((1024, 768))
+    height, width, msb = 40, 180, np.uint16(8)
+    stripe = np.tile((np.arange(height) * spec.stripes // height)[:, None], (1, width))
+    codes = patterns.stripe_codes(spec)[stripe]
+    levels = np.moveaxis(patterns.code_bits(codes & ~8, 4), -1, 0).astype(np.float32)  # the bit read off
+    unclear = np.zeros((height, width), np.uint16)
+    unclear[:, :60] = msb
+    unclear[20, 90] = msb
+    unclear[::2, 120:], unclear[1::2, 120:] = msb, 4
+    unclear[10, 10] = msb | 1
+    lit = np.ones((height, width), bool)
+    lit[30, 30] = False
+    alternates = lost_bit_alternates(levels, np.where(lit, unclear, 0).astype(np.uint16), lit,
+                                     _stripe_of_code(spec), share=0.5, scale_px=6.0)
+    read = patterns.code_to_stripe(codes & ~8, spec)
+    left = np.zeros((height, width), bool)
+    left[:, :60] = (codes & ~8)[:, :60] != 0
+    left[10, 10] = left[30, 30] = False
+    expected = np.where(left, patterns.code_to_stripe(codes | 8, spec), -1)
+    np.testing.assert_array_equal(alternates, expected)
+    mirrored = left & (read >= 0)
+    np.testing.assert_array_equal(alternates[mirrored], 13 - read[mirrored])
+    assert (alternates[:, 60:] == -1).all()

@@ -188,7 +188,8 @@ def test_decode_by_order_is_the_default_for_the_thesis_pattern_too(small_rig):
 
 def test_anchored_runs_keep_the_runs_their_own_pixels_vouch_for():
     """A run (one stripe's pixels in a row down a column) is kept when at least the share asked
-    of its pixels got that stripe per pixel; dark runs never."""
+    of its pixels got that stripe per pixel, or may be it (`alternates`: a lost bit); dark runs
+    never."""
     stripe = np.array([[3, 3, 3, 3, 4, 4, 4, 4, -1, -1]], dtype=np.int16).T
     anchors = np.array([[3, -1, -1, -1, -1, 5, -1, 4, -1, -1]], dtype=np.int16).T
     np.testing.assert_array_equal(anchored_runs(stripe, anchors, SPEC)[:, 0], [1, 1, 1, 1, 1, 1, 1, 1, 0, 0])
@@ -198,6 +199,9 @@ def test_anchored_runs_keep_the_runs_their_own_pixels_vouch_for():
     columns = SPEC.with_(orientation="columns")
     np.testing.assert_array_equal(anchored_runs(stripe.T, anchors.T, columns, min_share=0.3),
                                   anchored_runs(stripe, anchors, SPEC, min_share=0.3).T)
+    alternates = np.array([[-1, -1, -1, -1, 4, -1, 4, -1, -1, -1]], dtype=np.int16).T  # the stripes they may be too
+    np.testing.assert_array_equal(anchored_runs(stripe, anchors, SPEC, min_share=0.3, alternates=alternates)[:, 0],
+                                  [1] * 8 + [0] * 2)
 
 
 def column(*runs):

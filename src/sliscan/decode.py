@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from sliscan._threads import in_parallel, over_rows
 from sliscan.demodulate import Demodulated
-from sliscan.patterns import code_to_stripe, stripe_center, stripe_codes
+from sliscan.patterns import bits_to_code, code_to_stripe, stripe_center, stripe_codes
 from sliscan.stripe_order import OrderCosts, anchored_runs, decode_by_order, reversed_runs, stripe_direction
 from sliscan.types import PatternSpec
 
@@ -316,17 +316,19 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
                  residual: NDArray[np.float32], noise: NDArray[np.float32], bit_gains: NDArray[np.float32],
                  half_confidence: np.float32, min_snr: np.float32, max_residual: np.float32, stripe_borders: bool,
                  rows: NDArray[np.intp], levels: NDArray[np.float32], stripe: NDArray[np.int16],
-                 confidence: NDArray[np.float32], valid: NDArray[np.bool_]) -> None:
+                 confidence: NDArray[np.float32], valid: NDArray[np.bool_], unclear_bits: NDArray[np.uint16]) -> None:
     """Bit levels, Gray decoding and the per-pixel validity tests of `decode`, for the given
     rows (see `decode` for the tests; `noise` of shape (0, 0) when there is none; bit `n`'s
-    noise is ``noise / bit_gains[n]``, or `noise` where `bit_gains` has shape (0, 0, 0))."""
+    noise is ``noise / bit_gains[n]``, or `noise` where `bit_gains` has shape (0, 0, 0)).
+    `unclear_bits`: the unclear bits of a lit pixel the model explains, as a mask of its code's
+    bits (0 elsewhere)."""
     bits = scale_off.size
     with_noise = noise.shape[0] > 0
     divided = bit_gains.shape[0] > 0
     for y in rows:
         for x in range(reference.shape[1]):
             ref = reference[y, x]
-            code, unclear, first_unclear, any_on = 0, 0, -1, False
+            code, unclear, first_unclear, any_on, mask = 0, 0, -1, False, 0
             least = np.float32(np.inf)
             for n in range(bits):
                 level = np.float32(np.float64(amplitude[n, y, x] / ref - scale_off[n]) / scale_span[n])
@@ -345,6 +347,7 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
                     clear = clear and np.float64(margin) * scale_span[n] * np.float64(ref) >= min_snr * sd
                 if not clear:
                     unclear += 1
+                    mask |= 1 << (bits - 1 - n)
                     if first_unclear < 0:
                         first_unclear = n
             s = stripe_of_code[code]
@@ -354,6 +357,7 @@ def _decode_rows(amplitude: NDArray[np.float32], reference: NDArray[np.float32],
             c = np.float32(2) * least
             confidence[y, x] = np.float32(0) if c < 0 else (np.float32(1) if c > 1 else c)
             valid[y, x] = lit[y, x] and s >= 0 and modelled and settled
+            unclear_bits[y, x] = mask if lit[y, x] and modelled else 0
 
 
 #: The lit zero stripe's walk from stripe 1 (`_zero_stripe`) stops where the DC falls below
@@ -681,6 +685,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         per-pixel decisions (`sliscan.stripe_order.anchored_runs`): the order fills in where
         the stripe's own pixels vouch for it, it does not invent a stripe (a blurred capture:
         0.24 % of the frame decoded with 0.25, 2.4 % with 0.1, mostly wrong, none per pixel).
+        In the pass that follows the blur, a pixel whose one unclear bit is lost around it
+        vouches for both stripes it may be (`lost_bit_alternates`, `LOST_BIT_SHARE`).
     drop_reversed : bool
         Decided by order, drop the runs that come in reverse order along the phase direction
         (`sliscan.stripe_order.reversed_runs`): a bit lost where every stripe has it on, read
@@ -722,7 +728,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     amplitude = demod.amplitude.copy()
     amplitude[: spec.bits] /= gains
     # each envelope so divided carries its noise with it: every bit is judged by its own light
-    return _decode_once(dataclasses.replace(demod, amplitude=amplitude), spec, bit_gains=gains, **options)
+    return _decode_once(dataclasses.replace(demod, amplitude=amplitude), spec, bit_gains=gains,
+                        lost_bit_share=LOST_BIT_SHARE, **options)
 
 
 #: `decode`'s `follow_blur` decodes a frame again with the bits' gains that follow the blur
@@ -732,6 +739,11 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
 #: frames in focus by -0.2 to +0.2 points of completeness (1296x972 sphere and objects): the
 #: share only spares them the second pass's time (a 5 MP decode: 1.3 s).
 FOLLOW_BLUR_BELOW = 0.85
+#: ... and in that pass a pixel whose one unclear bit is unclear on at least this share of the
+#: lit pixels around it, every other bit on under half of it, vouches for both stripes it may
+#: be (`lost_bit_alternates`): the 960x720 rig blurred by 2 px, sliscan's pattern 23.8 -> 51.9 %
+#: complete (docs/design.md, "A bit lost over a whole region").  Over 1: none.
+LOST_BIT_SHARE = 0.5
 #: `blur_gains` fits a blur over neighbourhoods of this share of the frame's width (a
 #: Gaussian's sigma).  Measured with the prototype (every frame decoded twice; docs/design.md,
 #: "Bit levels that follow the blur") on the 960x720 and 1296x972 spheres: under a 16 mm
@@ -809,11 +821,61 @@ def blur_gains(levels: NDArray[np.float32], lit: NDArray[np.bool_], carriers: tu
     return np.clip(gains, BLUR_GAIN_FLOOR, 1.0).astype(np.float32)
 
 
+def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16], lit: NDArray[np.bool_],
+                        stripe_of_code: NDArray[np.int64], *, share: float, scale_px: float) -> NDArray[np.int16]:
+    """The other stripe a pixel may be where its one unclear bit is lost around it; -1 elsewhere.
+
+    A bit is lost around a pixel when it is unclear on at least `share` of the lit pixels in a
+    Gaussian neighbourhood of sigma `scale_px` (the frame blurred beyond its carrier: a 2 px blur
+    on both sides of a 960x720 rig leaves the highest carrier a tenth of its modulation), and
+    every other bit on under half that share (two bits lost leave the order too little to go on:
+    a 640x480 rig blurred by 2 px decoded 10 % of its lit pixels that way, a quarter of them
+    gross outliers).  Such
+    a pixel cannot tell its stripe from the one with that bit flipped, but the order down the
+    column can.  A pixel with no clear bit on is left out: it may be a shadow a neighbour's light
+    leaks into (the thesis's pattern projects the all-zero code).
+
+    Parameters
+    ----------
+    levels : (K, H, W) float32 array
+        Bit levels (`Decoded.levels`), read as on at 0.5 and above.
+    unclear : (H, W) uint16 array
+        Each pixel's unclear bits as a mask of its code's bits (0: none, or not considered).
+    lit : (H, W) bool array
+    stripe_of_code : (2**K,) int array
+        Stripe of every code, -1 for those never projected.
+    share, scale_px : float
+    """
+    bits = levels.shape[0]
+    height, width = lit.shape
+    step = max(1, int(scale_px // 4))
+    small = (max(1, width // step), max(1, height // step))
+
+    def around(mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """The neighbourhood's mean of `mask`, on a grid `step` apart and back."""
+        coarse = cv2.resize(mask.astype(np.float32), small, interpolation=cv2.INTER_AREA)
+        return cv2.resize(cv2.GaussianBlur(coarse, (0, 0), scale_px / step), (width, height),
+                          interpolation=cv2.INTER_LINEAR)
+
+    single = (unclear != 0) & ((unclear & (unclear - 1)) == 0)
+    lit_around = np.maximum(around(lit), np.float32(1e-6))
+    masks = [np.uint16(1 << (bits - 1 - n)) for n in range(bits)]
+    shares = [around(lit & ((unclear & bit) != 0)) / lit_around for bit in masks]
+    lost = np.zeros(lit.shape, bool)
+    for n, bit in enumerate(masks):
+        others_kept = np.all([shares[m] < share / 2 for m in range(bits) if m != n], axis=0)
+        lost |= single & (unclear == bit) & (shares[n] >= share) & others_kept
+    code = bits_to_code(levels >= 0.5)
+    lost &= (code & ~unclear.astype(np.int64)) != 0  # one clear bit on at least: light leaking into a shadow has none
+    return np.where(lost, stripe_of_code[code ^ unclear], -1).astype(np.int16)
+
+
 def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float, min_confidence: float | None,
                  min_snr: float | None, stripe_borders: bool, max_residual: float, max_misfit: float,
                  zero_code_dc: float, neighbour_radius: int, border_reach: int, order: OrderCosts | bool,
                  min_margin: float, max_order_misfit: float, min_anchored: float, drop_reversed: bool,
-                 restore_reversed: bool, direction: int | None, bit_gains: NDArray[np.float32] | None = None) -> Decoded:
+                 restore_reversed: bool, direction: int | None, bit_gains: NDArray[np.float32] | None = None,
+                 lost_bit_share: float = 2.0) -> Decoded:
     """`decode`'s one pass over the envelopes as they are (see `decode` for the parameters;
     `bit_gains` ``(K, H, W)``: what the bits' envelopes were divided by, so bit `n`'s noise is
     ``demod.noise / bit_gains[n]``)."""
@@ -827,23 +889,31 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
     stripe = np.empty(dc.shape, dtype=np.int16)
     confidence = np.empty(dc.shape, dtype=np.float32)
     valid = np.empty(dc.shape, dtype=bool)
+    unclear = np.empty(dc.shape, dtype=np.uint16)
     noise = np.zeros((0, 0), np.float32) if demod.noise is None else demod.noise
     gains = np.zeros((0, 0, 0), np.float32) if bit_gains is None else bit_gains
     stripe_of_code = _stripe_of_code(spec)
     over_rows(lambda rows: _decode_rows(
         demod.amplitude, reference, scale.off, scale.span, stripe_of_code, lit, demod.residual, noise, gains,
         np.float32(0.5 * min_confidence), np.float32(min_snr), np.float32(max_residual), stripe_borders, rows,
-        levels, stripe, confidence, valid), dc.shape[0])
+        levels, stripe, confidence, valid, unclear), dc.shape[0])
     if order is not False:
         costs = order if isinstance(order, OrderCosts) else OrderCosts()
         noise = np.zeros(dc.shape, np.float32) if demod.noise is None else demod.noise / reference
         anchors = np.where(valid, stripe, np.int16(-1))
+        alternate = np.full(dc.shape, -1, np.int16)
+        if lost_bit_share <= 1:
+            # a pixel whose one unclear bit is lost around it vouches for both stripes it may be
+            alternate = lost_bit_alternates(levels, np.where(valid, 0, unclear).astype(np.uint16), lit, stripe_of_code,
+                                            share=lost_bit_share, scale_px=BLUR_GAIN_SCALE * dc.shape[1])
+            anchors = np.where(alternate >= 0, stripe, anchors)
         if direction is None:
             direction = stripe_direction(stripe, valid, spec)
         stripe, margin, misfit = decode_by_order(levels, noise, scale.span, lit, spec, direction, costs,
                                                  bit_gains=bit_gains)
         valid = (stripe >= 0) & (margin >= min_margin) & (misfit <= max_order_misfit)
-        valid &= ((demod.residual <= max_residual) | ~lit) & anchored_runs(stripe, anchors, spec, min_share=min_anchored)
+        valid &= ((demod.residual <= max_residual) | ~lit) & anchored_runs(stripe, anchors, spec, min_share=min_anchored,
+                                                                             alternates=alternate)
         if drop_reversed:
             reverse, restored = reversed_runs(np.where(valid, stripe, np.int16(-1)), spec, direction)
             if restore_reversed:

@@ -320,8 +320,8 @@ def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], bit_
 
 
 @numba.njit(cache=True, nogil=True)
-def _anchored_columns(stripe: NDArray[np.int16], anchors: NDArray[np.int16], min_share: float,
-                      lines: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
+def _anchored_columns(stripe: NDArray[np.int16], anchors: NDArray[np.int16], alternates: NDArray[np.int16],
+                      min_share: float, lines: NDArray[np.intp], out: NDArray[np.bool_]) -> None:
     """`anchored_runs` for the given columns (the phase direction along axis 0)."""
     h = stripe.shape[0]
     for x in lines:
@@ -329,7 +329,7 @@ def _anchored_columns(stripe: NDArray[np.int16], anchors: NDArray[np.int16], min
         while start < h:
             end, anchored = start, 0
             while end < h and stripe[end, x] == stripe[start, x]:
-                anchored += anchors[end, x] == stripe[start, x]
+                anchored += anchors[end, x] == stripe[start, x] or alternates[end, x] == stripe[start, x]
                 end += 1
             keep = anchored > 0 and anchored >= min_share * (end - start) and stripe[start, x] >= 0
             for y in range(start, end):
@@ -338,7 +338,7 @@ def _anchored_columns(stripe: NDArray[np.int16], anchors: NDArray[np.int16], min
 
 
 def anchored_runs(stripe: NDArray[np.int16], anchors: NDArray[np.int16], spec: PatternSpec, *,
-                  min_share: float = 0.0) -> NDArray[np.bool_]:
+                  min_share: float = 0.0, alternates: NDArray[np.int16] | None = None) -> NDArray[np.bool_]:
     """Pixels of `stripe` ``(H, W)`` whose run (pixels of one stripe in a row along the phase
     direction) holds at least one pixel, and at least `min_share` of its pixels, where
     `anchors` ``(H, W)`` (stripes decided pixel by pixel, -1 where not) has the same stripe.
@@ -351,8 +351,9 @@ def anchored_runs(stripe: NDArray[np.int16], anchors: NDArray[np.int16], spec: P
         return np.ascontiguousarray(a if spec.orientation == "rows" else a.T, dtype=np.int16)
 
     s, anchor = frame(stripe), frame(anchors)
+    other = frame(np.full(stripe.shape, -1, np.int16) if alternates is None else alternates)
     out = np.empty(s.shape, dtype=bool)
-    over_rows(lambda lines: _anchored_columns(s, anchor, float(min_share), lines, out), s.shape[1])
+    over_rows(lambda lines: _anchored_columns(s, anchor, other, float(min_share), lines, out), s.shape[1])
     return out if spec.orientation == "rows" else np.ascontiguousarray(out.T)
 
 
