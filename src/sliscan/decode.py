@@ -739,9 +739,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
 #: frames in focus by -0.2 to +0.2 points of completeness (1296x972 sphere and objects): the
 #: share only spares them the second pass's time (a 5 MP decode: 1.3 s).
 FOLLOW_BLUR_BELOW = 0.85
-#: ... and in that pass a pixel whose one unclear bit is unclear on at least this share of the
-#: lit pixels around it, every other bit on under half of it, vouches for both stripes it may
-#: be (`lost_bit_alternates`): the 960x720 rig blurred by 2 px, sliscan's pattern 23.8 -> 51.9 %
+#: ... and in that pass an undecided pixel whose one unclear bit leaves at least this share of
+#: the lit pixels around it undecided (every other bit under half of it) vouches for both
+#: stripes it may be (`lost_bit_alternates`): the 960x720 rig blurred by 2 px, sliscan's pattern 23.8 -> 51.9 %
 #: complete (docs/design.md, "A bit lost over a whole region").  Over 1: none.
 LOST_BIT_SHARE = 0.5
 #: `blur_gains` fits a blur over neighbourhoods of this share of the frame's width (a
@@ -904,6 +904,7 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
         alternate = np.full(dc.shape, -1, np.int16)
         if lost_bit_share <= 1:
             # a pixel whose one unclear bit is lost around it vouches for both stripes it may be
+            # the decided pixels neither vouch so nor count toward a bit's loss
             alternate = lost_bit_alternates(levels, np.where(valid, 0, unclear).astype(np.uint16), lit, stripe_of_code,
                                             share=lost_bit_share, scale_px=BLUR_GAIN_SCALE * dc.shape[1])
             anchors = np.where(alternate >= 0, stripe, anchors)
