@@ -139,7 +139,8 @@ def _focused(device: str, surface: Callable[[], simulate.Surface] = simulate.sph
     def scene(aperture: float, conditions: simulate.Conditions) -> Scene:
         if aperture == 0:
             return surface(), conditions
-        return surface(), conditions.with_(**{f"{device}_focus_mm": FOCUS_MM[device], f"{device}_aperture_mm": aperture})
+        lens = {f"{device}_focus_mm": FOCUS_MM[device], f"{device}_aperture_mm": aperture}
+        return surface(), conditions.with_(**lens)
     return scene
 
 

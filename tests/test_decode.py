@@ -397,7 +397,7 @@ def test_lost_bit_alternates_where_the_bit_is_lost_around_the_pixel():
     unclear[10, 10] = msb | 1
     lit = np.ones((height, width), bool)
     lit[30, 30] = False
-    alternates = lost_bit_alternates(levels, np.where(lit, unclear, 0).astype(np.uint16), lit,
+    alternates, lost = lost_bit_alternates(levels, np.where(lit, unclear, 0).astype(np.uint16), lit,
                                      _stripe_of_code(spec), share=0.5, scale_px=6.0)
     read = patterns.code_to_stripe(codes & ~8, spec)
     left = np.zeros((height, width), bool)

@@ -81,6 +81,27 @@ def test_bit_gains_divide_each_bits_noise(rng):
         assert np.abs(plain[1] - spans[1]).max() > 1  # the gains do change the margins
 
 
+def test_a_lost_bit_is_no_evidence_and_the_order_decides(rng):
+    """The most significant bit read off everywhere (each stripe of the lower half reads as its
+    mirror): decided with that bit, the columns come out mirrored (the per-pixel evidence
+    outweighs the order); with its gain 0 (`decode`'s lost bit) the bit counts for nothing, and
+    the order alone tells each stripe from its mirror: every pixel right but where the lost bit
+    is the only one that changes (stripes 6 and 7, rows 80-119: the border between them is
+    anywhere in that pair, a stripe off at most)."""
+    truth = staircase(h=150, w=20)
+    levels = ideal_levels(truth, gain=0.8) + rng.normal(0, 0.03, (SPEC.bits, *truth.shape)).astype(np.float32)
+    levels[0] = rng.normal(0.1, 0.03, truth.shape)  # the lost bit: read off
+    noise = np.full(truth.shape, 0.01, np.float32)
+    lit = np.ones(truth.shape, bool)
+    gains = np.ones(levels.shape, np.float32)
+    with_bit, _, _ = decode_by_order(levels, noise, SPAN, lit, SPEC, 1, bit_gains=gains)
+    gains[0] = 0
+    without, margin, _ = decode_by_order(levels, noise, SPAN, lit, SPEC, 1, bit_gains=gains)
+    assert (with_bit != truth).mean() > 0.3
+    wrong = without != truth
+    assert np.abs(without - truth).max() <= 1 and not wrong[:80].any() and not wrong[120:].any()
+
+
 def test_a_dim_surface_decodes_by_its_code_not_its_level(rng):
     """A surface turning away from the projector: every level is 0.3 of its on level (the
     ambient part of the DC stays), so a 0.5 threshold reads every bit off, but the code's

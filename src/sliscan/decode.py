@@ -686,7 +686,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         the stripe's own pixels vouch for it, it does not invent a stripe (a blurred capture:
         0.24 % of the frame decoded with 0.25, 2.4 % with 0.1, mostly wrong, none per pixel).
         In the pass that follows the blur, a pixel whose one unclear bit is lost around it
-        vouches for both stripes it may be (`lost_bit_alternates`, `LOST_BIT_SHARE`).
+        vouches for both stripes it may be, and the order decides without that bit
+        (`lost_bit_alternates`, `LOST_BIT_SHARE`).
     drop_reversed : bool
         Decided by order, drop the runs that come in reverse order along the phase direction
         (`sliscan.stripe_order.reversed_runs`): a bit lost where every stripe has it on, read
@@ -741,7 +742,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
 FOLLOW_BLUR_BELOW = 0.85
 #: ... and in that pass an undecided pixel whose one unclear bit leaves at least this share of
 #: the lit pixels around it undecided (every other bit under half of it) vouches for both
-#: stripes it may be (`lost_bit_alternates`): the 960x720 rig blurred by 2 px, sliscan's pattern 23.8 -> 51.9 %
+#: stripes it may be, and the decisions by order leave that bit out there
+#: (`lost_bit_alternates`): the 960x720 rig blurred by 2 px, sliscan's pattern 23.8 -> 53.0 %
 #: complete (docs/design.md, "A bit lost over a whole region").  Over 1: none.
 LOST_BIT_SHARE = 0.5
 #: `blur_gains` fits a blur over neighbourhoods of this share of the frame's width (a
@@ -822,8 +824,10 @@ def blur_gains(levels: NDArray[np.float32], lit: NDArray[np.bool_], carriers: tu
 
 
 def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16], lit: NDArray[np.bool_],
-                        stripe_of_code: NDArray[np.int64], *, share: float, scale_px: float) -> NDArray[np.int16]:
-    """The other stripe a pixel may be where its one unclear bit is lost around it; -1 elsewhere.
+                        stripe_of_code: NDArray[np.int64], *, share: float, scale_px: float,
+                        ) -> tuple[NDArray[np.int16], NDArray[np.bool_]]:
+    """The other stripe a pixel may be where its one unclear bit is lost around it (-1
+    elsewhere), and where each bit is so lost.
 
     A bit is lost around a pixel when it is unclear on at least `share` of the lit pixels in a
     Gaussian neighbourhood of sigma `scale_px` (the frame blurred beyond its carrier: a 2 px blur
@@ -845,6 +849,12 @@ def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16]
     stripe_of_code : (2**K,) int array
         Stripe of every code, -1 for those never projected.
     share, scale_px : float
+
+    Returns
+    -------
+    alternates : (H, W) int16 array
+    lost : (K, H, W) bool array
+        Where bit `k` is lost (the decisions by order then leave its level out).
     """
     bits = levels.shape[0]
     height, width = lit.shape
@@ -861,13 +871,14 @@ def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16]
     lit_around = np.maximum(around(lit), np.float32(1e-6))
     masks = [np.uint16(1 << (bits - 1 - n)) for n in range(bits)]
     shares = [around(lit & ((unclear & bit) != 0)) / lit_around for bit in masks]
-    lost = np.zeros(lit.shape, bool)
+    lost = np.stack([(shares[n] >= share) & np.all([shares[m] < share / 2 for m in range(bits) if m != n], axis=0)
+                     for n in range(bits)])
+    vouch = np.zeros(lit.shape, bool)
     for n, bit in enumerate(masks):
-        others_kept = np.all([shares[m] < share / 2 for m in range(bits) if m != n], axis=0)
-        lost |= single & (unclear == bit) & (shares[n] >= share) & others_kept
+        vouch |= single & (unclear == bit) & lost[n]
     code = bits_to_code(levels >= 0.5)
-    lost &= (code & ~unclear.astype(np.int64)) != 0  # one clear bit on at least: light leaking into a shadow has none
-    return np.where(lost, stripe_of_code[code ^ unclear], -1).astype(np.int16)
+    vouch &= (code & ~unclear.astype(np.int64)) != 0  # one clear bit on at least: light leaking into a shadow has none
+    return np.where(vouch, stripe_of_code[code ^ unclear], -1).astype(np.int16), lost
 
 
 def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float, min_confidence: float | None,
@@ -905,16 +916,19 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
         if lost_bit_share <= 1:
             # a pixel whose one unclear bit is lost around it vouches for both stripes it may be
             # the decided pixels neither vouch so nor count toward a bit's loss
-            alternate = lost_bit_alternates(levels, np.where(valid, 0, unclear).astype(np.uint16), lit, stripe_of_code,
-                                            share=lost_bit_share, scale_px=BLUR_GAIN_SCALE * dc.shape[1])
+            alternate, lost = lost_bit_alternates(levels, np.where(valid, 0, unclear).astype(np.uint16), lit,
+                                                  stripe_of_code, share=lost_bit_share,
+                                                  scale_px=BLUR_GAIN_SCALE * dc.shape[1])
             anchors = np.where(alternate >= 0, stripe, anchors)
+            if bit_gains is not None and lost.any():
+                bit_gains = np.where(lost, np.float32(0), bit_gains)  # a lost bit's level is no evidence
         if direction is None:
             direction = stripe_direction(stripe, valid, spec)
         stripe, margin, misfit = decode_by_order(levels, noise, scale.span, lit, spec, direction, costs,
                                                  bit_gains=bit_gains)
         valid = (stripe >= 0) & (margin >= min_margin) & (misfit <= max_order_misfit)
-        valid &= ((demod.residual <= max_residual) | ~lit) & anchored_runs(stripe, anchors, spec, min_share=min_anchored,
-                                                                             alternates=alternate)
+        valid &= (demod.residual <= max_residual) | ~lit
+        valid &= anchored_runs(stripe, anchors, spec, min_share=min_anchored, alternates=alternate)
         if drop_reversed:
             reverse, restored = reversed_runs(np.where(valid, stripe, np.int16(-1)), spec, direction)
             if restore_reversed:

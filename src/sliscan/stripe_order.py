@@ -155,9 +155,11 @@ def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], bit_gains:
     (span[k] bit_gains[k, y, x])``: what the bits' envelopes were divided by divides their noise
     too; the gains are 1 where `bit_gains` has shape (0, 0, 0)), and the gain has the prior
     ``(g - 1) ** 2 / (2 s ** 2 g)`` below 1 (``s`` = `gain_sd`: near ``(ln g / s) ** 2 / 2``
-    without a logarithm) and ``(g - 1) ** 2 / (2 (s / 2) ** 2)`` above.  A pixel with a
-    non-finite level or noise gives no evidence (0 for every state).  `costs` as in
-    `_order_columns`; `work` ``(2 K + 3, BLOCK)`` is working memory.
+    without a logarithm) and ``(g - 1) ** 2 / (2 (s / 2) ** 2)`` above.  A bit whose gain in
+    `bit_gains` is 0 at a pixel (a bit lost there: `sliscan.decode.lost_bit_alternates`) counts
+    neither in the gain nor in the cost there.  A pixel with a non-finite level or noise gives no
+    evidence (0 for every state).  `costs` as in `_order_columns`; `work` ``(3 K + 4, BLOCK)`` is
+    working memory.
 
     The pixels' levels and noise are first copied into `work` (padded to `BLOCK`), so every
     loop after that runs over `BLOCK` contiguous values of local rows: a fixed trip count
@@ -166,36 +168,39 @@ def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], bit_gains:
     bits, states = on.shape
     model2, cap, prior = costs[4] * costs[4], costs[5], np.float32(0.5) / (costs[6] * costs[6])
     level, var = work[:bits], work[bits:2 * bits]  # the levels and 2 sd ** 2 of each bit
-    gain, spread, base = work[2 * bits], work[2 * bits + 1], work[2 * bits + 2]
+    used = work[2 * bits:3 * bits]  # 1 where the bit counts, 0 where it is lost
+    gain, spread, base, count = work[3 * bits], work[3 * bits + 1], work[3 * bits + 2], work[3 * bits + 3]
     divided = bit_gains.shape[0] > 0
     for k in range(bits):
         inv = np.float32(1) / span[k]
         for i in range(n):
             level[k, i] = levels[k, y, x0 + i]
             v = noise[y, x0 + i] * inv
+            used[k, i] = 1
             if divided:
-                v /= bit_gains[k, y, x0 + i]
+                g = bit_gains[k, y, x0 + i]
+                if g > 0:
+                    v /= g
+                else:
+                    level[k, i], v, used[k, i] = 0, 1, 0
             var[k, i] = np.float32(2) * v * v
         for i in range(n, BLOCK):
-            level[k, i], var[k, i] = 0, 1
+            level[k, i], var[k, i], used[k, i] = 0, 1, 1
     for i in range(n):
         base[i] = np.float32(0) if lit[y, x0 + i] else costs[8]
     for i in range(n, BLOCK):
         base[i] = 0
     for s in range(states):
-        count = np.float32(0)
-        for k in range(bits):
-            count += on[k, s]
-        scale = np.float32(1) / max(count, np.float32(1))
         for i in range(BLOCK):
-            gain[i] = 0
+            gain[i], count[i] = 0, 0
         for k in range(bits):
             o = on[k, s]
             for i in range(BLOCK):
                 gain[i] += o * level[k, i]
+                count[i] += o * used[k, i]
         row = out[s]
         for i in range(BLOCK):
-            g = max(gain[i] * scale, np.float32(1e-3))
+            g = max(gain[i] * (np.float32(1) / max(count[i], np.float32(1))), np.float32(1e-3))
             gain[i] = g
             spread[i] = np.float32(2) * model2 * g * g
             d = g - np.float32(1)
@@ -205,7 +210,7 @@ def emission(levels: NDArray[np.float32], noise: NDArray[np.float32], bit_gains:
             for i in range(BLOCK):
                 e = level[k, i] - o * gain[i]
                 t = e * e / (var[k, i] + spread[i])
-                row[i] += t if t < cap else cap
+                row[i] += used[k, i] * (t if t < cap else cap)
     for i in range(n):
         out[states, i] = costs[7] if lit[y, x0 + i] else np.float32(0)
     for i in range(n, BLOCK):
@@ -276,7 +281,7 @@ def _order_columns(levels: NDArray[np.float32], noise: NDArray[np.float32], bit_
     ahead = np.full((states + 3, BLOCK), np.inf, dtype=np.float32)
     nothing = np.zeros((states + 1, BLOCK), dtype=np.float32)
     work = np.empty(BLOCK, np.float32)
-    scratch = np.empty((2 * bits + 3, BLOCK), np.float32)
+    scratch = np.empty((3 * bits + 4, BLOCK), np.float32)
     first, second = np.empty(BLOCK, np.float32), np.empty(BLOCK, np.float32)
     label = np.empty(BLOCK, np.int32)
     for block in blocks:
