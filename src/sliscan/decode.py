@@ -834,10 +834,9 @@ def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16]
     on both sides of a 960x720 rig leaves the highest carrier a tenth of its modulation), and
     every other bit on under half that share (two bits lost leave the order too little to go on:
     a 640x480 rig blurred by 2 px decoded 10 % of its lit pixels that way, a quarter of them
-    gross outliers).  Such
-    a pixel cannot tell its stripe from the one with that bit flipped, but the order down the
-    column can.  A pixel with no clear bit on is left out: it may be a shadow a neighbour's light
-    leaks into (the thesis's pattern projects the all-zero code).
+    gross outliers).  Such a pixel cannot tell its stripe from the one with that bit flipped,
+    but the order down the column can.  A pixel with no clear bit on is left out: it may be a
+    shadow a neighbour's light leaks into (the thesis's pattern projects the all-zero code).
 
     Parameters
     ----------
@@ -914,7 +913,7 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
         anchors = np.where(valid, stripe, np.int16(-1))
         alternate = np.full(dc.shape, -1, np.int16)
         if lost_bit_share <= 1:
-            # a pixel whose one unclear bit is lost around it vouches for both stripes it may be
+            # a pixel whose one unclear bit is lost around it vouches for both stripes it may be;
             # the decided pixels neither vouch so nor count toward a bit's loss
             alternate, lost = lost_bit_alternates(levels, np.where(valid, 0, unclear).astype(np.uint16), lit,
                                                   stripe_of_code, share=lost_bit_share,
