@@ -97,9 +97,10 @@ def blurry_checkered_sphere():
 def test_a_blurrier_camera_is_measured_and_its_steps_found(blurry_checkered_sphere):
     """A camera blurred by 2 px measures 1.99 px on the capture's tall steps (2.02 with the pixels'
     aperture), over `STEP_BLUR_BAND` times `STEP_SPREAD`; with it the detector finds the albedo
-    edges the 1 px sharpness test rejects, and the scan decodes more: measured 72.5 -> 84.3 %
-    complete, 70.0 -> 82.2 % right stripes, stripes more than one off 0.15 -> 0.21 % (the
-    margins: 5 points, 0.5 %)."""
+    edges the 1 px sharpness test rejects, and the scan decodes more: measured 81.2 -> 85.6 %
+    complete, 78.3 -> 83.4 % right stripes, stripes more than one off 0.10 -> 0.21 % (the
+    margins: 3 points, 0.5 %; 67.0 -> 82.6 % complete before the fifty-third session's lost bit,
+    whose second pass now rescues much of what the 1 px assumption loses)."""
     rig, spec, capture = blurry_checkered_sphere
     measured = camera_blur(capture.image, spec)
     assert measured == pytest.approx(np.sqrt(4 + 1 / 12), abs=0.15)
@@ -110,8 +111,8 @@ def test_a_blurrier_camera_is_measured_and_its_steps_found(blurry_checkered_sphe
         return accuracy(result, capture.truth, spec, rig.calibration)
 
     fixed, measured_blur = figures(STEP_SPREAD), figures(None)
-    assert measured_blur.completeness >= fixed.completeness + 0.05
-    assert measured_blur.stripe_accuracy >= fixed.stripe_accuracy + 0.05
+    assert measured_blur.completeness >= fixed.completeness + 0.03
+    assert measured_blur.stripe_accuracy >= fixed.stripe_accuracy + 0.03
     assert measured_blur.far_stripe <= 0.005
 
 
