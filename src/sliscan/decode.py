@@ -866,7 +866,6 @@ def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16]
         return cv2.resize(cv2.GaussianBlur(coarse, (0, 0), scale_px / step), (width, height),
                           interpolation=cv2.INTER_LINEAR)
 
-    single = (unclear != 0) & ((unclear & (unclear - 1)) == 0)
     lit_around = np.maximum(around(lit), np.float32(1e-6))
     masks = [np.uint16(1 << (bits - 1 - n)) for n in range(bits)]
     shares = [around(lit & ((unclear & bit) != 0)) / lit_around for bit in masks]
@@ -874,7 +873,7 @@ def lost_bit_alternates(levels: NDArray[np.float32], unclear: NDArray[np.uint16]
                      for n in range(bits)])
     vouch = np.zeros(lit.shape, bool)
     for n, bit in enumerate(masks):
-        vouch |= single & (unclear == bit) & lost[n]
+        vouch |= (unclear == bit) & lost[n]  # the pixel's one unclear bit, and lost
     code = bits_to_code(levels >= 0.5)
     vouch &= (code & ~unclear.astype(np.int64)) != 0  # one clear bit on at least: light leaking into a shadow has none
     return np.where(vouch, stripe_of_code[code ^ unclear], -1).astype(np.int16), lost
@@ -911,7 +910,7 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
         costs = order if isinstance(order, OrderCosts) else OrderCosts()
         noise = np.zeros(dc.shape, np.float32) if demod.noise is None else demod.noise / reference
         anchors = np.where(valid, stripe, np.int16(-1))
-        alternate = np.full(dc.shape, -1, np.int16)
+        alternate = None
         if lost_bit_share <= 1:
             # a pixel whose one unclear bit is lost around it vouches for both stripes it may be;
             # the decided pixels neither vouch so nor count toward a bit's loss
