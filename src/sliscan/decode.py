@@ -764,10 +764,11 @@ FOLLOW_BLUR_BELOW = 0.85
 #: (`lost_bit_alternates`): the 960x720 rig blurred by 2 px, sliscan's pattern 23.8 -> 53.0 %
 #: complete (docs/design.md, "A bit lost over a whole region").  Over 1: none.
 LOST_BIT_SHARE = 0.5
-#: ... and that pass judges a bit clear, and a pixel lit, at this many noise deviations from the
-#: threshold instead of `decode`'s default `min_snr` of 3 (unless one is given): a frame that
-#: decodes poorly is noisy or blurred, and the decisions by order (their margin, their misfit,
-#: the runs' anchors) then guard the bits the noise test alone would leave undecided ...
+#: ... and that pass judges a bit clear at this many noise deviations from its threshold instead
+#: of `decode`'s default `min_snr` of 3 (unless one is given; the lit test keeps it: at 1.5 it took
+#: shadows for lit): a frame that decodes poorly is noisy or blurred, and the decisions by order
+#: (their margin, their misfit, the runs' anchors) then guard the bits the noise test alone would
+#: leave undecided ...
 FOLLOW_BLUR_MIN_SNR = 1.5
 #: ... if that decodes at least this share of the lit pixels (two bits lost to blur: their
 #: decisions at 1.5 deviations are chance, and the few runs they anchor are a few percent gross
@@ -939,9 +940,8 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
     stripe_of_code = _stripe_of_code(spec)
     over_rows(lambda rows: _decode_rows(
         demod.amplitude, reference, scale.off, scale.span, stripe_of_code, lit, demod.residual, noise, gains,
-        np.float32(0.5 * min_confidence), np.float32(min_snr if bit_snr is None else bit_snr), np.float32(max_residual),
-        stripe_borders, rows,
-        levels, stripe, confidence, valid, unclear), dc.shape[0])
+        np.float32(0.5 * min_confidence), np.float32(min_snr if bit_snr is None else bit_snr),
+        np.float32(max_residual), stripe_borders, rows, levels, stripe, confidence, valid, unclear), dc.shape[0])
     if order is not False:
         costs = order if isinstance(order, OrderCosts) else OrderCosts()
         noise = np.zeros(dc.shape, np.float32) if demod.noise is None else demod.noise / reference
