@@ -776,8 +776,8 @@ FOLLOW_BLUR_MIN_SNR = 1.5
 RELAXED_MIN_DECODED = 1 / 3
 #: ... and this share of them more than the default does; else the pass keeps the default.  A
 #: frame that the noise held back gains tens of points (960x720 sphere, 600 e- full well: 15 ->
-#: 51 %); one whose undecided pixels the demodulator's model misfits gains a few, and a third of
-#: those are gross outliers (a plane turned 60 degrees about the vertical, the thesis's pattern:
+#: 51 %); one whose undecided pixels the demodulator's model misfits gains a few, a quarter to
+#: a half of them gross outliers (a plane turned 60 degrees about the vertical, the thesis's pattern:
 #: +2.6 points, gross outliers 5.6 -> 7.7 %; under half the projector's white as ambient light
 #: +1.6 points, 0.35 -> 0.89 %).
 RELAXED_MIN_GAIN = 0.05
