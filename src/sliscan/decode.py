@@ -711,9 +711,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
         bit carrier's envelope divided by its gain there relative to the frame's
         (`blur_gains`): a projector focused at one depth blurs the rest of the scene, and its
         highest carriers lose most of their modulation there, below the levels learned from
-        the whole frame.  Unless `min_snr` is given, that pass judges the bits at
-        `FOLLOW_BLUR_MIN_SNR` noise deviations (a frame that decodes poorly is blurred or
-        noisy: the decisions by order guard the bits), if it then decodes at least
+        the whole frame.  Unless `min_snr` is given or `order` is False, that pass judges
+        the bits at `FOLLOW_BLUR_MIN_SNR` noise deviations (a frame that decodes poorly is
+        blurred or noisy: the decisions by order guard the bits), if it then decodes at least
         `RELAXED_MIN_DECODED` of the lit pixels and `RELAXED_MIN_GAIN` of them more than at
         the default.
 
@@ -737,8 +737,8 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     followed = functools.partial(_decode_once, dataclasses.replace(demod, amplitude=amplitude), spec, bit_gains=gains,
                                  lost_bit_share=LOST_BIT_SHARE)
     strict = followed(**options)
-    if min_snr is not None or _default_min_snr(spec) <= FOLLOW_BLUR_MIN_SNR:
-        return strict
+    if min_snr is not None or order is False or _default_min_snr(spec) <= FOLLOW_BLUR_MIN_SNR:
+        return strict  # a threshold asked for, no order to guard the bits, or nothing to relax
     relaxed = followed(bit_snr=FOLLOW_BLUR_MIN_SNR, **options)
     lit = int(relaxed.lit.sum())
     if relaxed.valid.sum() >= max(RELAXED_MIN_DECODED * lit, strict.valid.sum() + RELAXED_MIN_GAIN * lit):
