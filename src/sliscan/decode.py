@@ -740,10 +740,9 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     if min_snr is not None or order is False or _default_min_snr(spec) <= FOLLOW_BLUR_MIN_SNR:
         return strict  # a threshold asked for, no order to guard the bits, or nothing to relax
     relaxed = followed(bit_snr=FOLLOW_BLUR_MIN_SNR, **options)
-    lit = int(relaxed.lit.sum())
-    if relaxed.valid.sum() >= max(RELAXED_MIN_DECODED * lit, strict.valid.sum() + RELAXED_MIN_GAIN * lit):
-        return relaxed
-    return strict
+    lit_pixels = int(relaxed.lit.sum())
+    wanted = max(RELAXED_MIN_DECODED * lit_pixels, strict.valid.sum() + RELAXED_MIN_GAIN * lit_pixels)
+    return relaxed if relaxed.valid.sum() >= wanted else strict
 
 
 def _default_min_snr(spec: PatternSpec) -> float:
