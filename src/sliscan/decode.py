@@ -734,8 +734,12 @@ def decode(demod: Demodulated, spec: PatternSpec, *, min_modulation: float = 0.3
     amplitude = demod.amplitude.copy()
     amplitude[: spec.bits] /= gains
     # each envelope so divided carries its noise with it: every bit is judged by its own light
-    followed = functools.partial(_decode_once, dataclasses.replace(demod, amplitude=amplitude), spec, bit_gains=gains,
-                                 lost_bit_share=LOST_BIT_SHARE)
+    blurred = dataclasses.replace(demod, amplitude=amplitude)
+    # the frame's levels: the same for both thresholds of the bits (the lit test keeps its own)
+    frame = FrameLevels.of(blurred, spec, min_modulation=min_modulation,
+                           min_snr=_default_min_snr(spec) if min_snr is None else min_snr, bit_gains=gains)
+    followed = functools.partial(_decode_once, blurred, spec, bit_gains=gains, lost_bit_share=LOST_BIT_SHARE,
+                                 frame=frame)
     strict = followed(**options)
     if min_snr is not None or order is False or _default_min_snr(spec) <= FOLLOW_BLUR_MIN_SNR:
         return strict  # a threshold asked for, no order to guard the bits, or nothing to relax
@@ -918,16 +922,19 @@ def _decode_once(demod: Demodulated, spec: PatternSpec, *, min_modulation: float
                  zero_code_dc: float, neighbour_radius: int, border_reach: int, order: OrderCosts | bool,
                  min_margin: float, max_order_misfit: float, min_anchored: float, drop_reversed: bool,
                  restore_reversed: bool, direction: int | None, bit_gains: NDArray[np.float32] | None = None,
-                 lost_bit_share: float = 2.0, bit_snr: float | None = None) -> Decoded:
+                 lost_bit_share: float = 2.0, bit_snr: float | None = None,
+                 frame: FrameLevels | None = None) -> Decoded:
     """`decode`'s one pass over the envelopes as they are (see `decode` for the parameters;
     `bit_gains` ``(K, H, W)``: what the bits' envelopes were divided by, so bit `n`'s noise is
     ``demod.noise / bit_gains[n]``; `bit_snr`: the bits' `min_snr` where it is not the lit
-    test's)."""
+    test's; `frame`: the frame's levels if already read, with the same `min_modulation`,
+    `min_snr` and `bit_gains`)."""
     bits = spec.bits
     phase_channel = bool(spec.phase_carriers)
     min_confidence = (0.05 if phase_channel else 0.1) if min_confidence is None else min_confidence
     min_snr = _default_min_snr(spec) if min_snr is None else min_snr
-    frame = FrameLevels.of(demod, spec, min_modulation=min_modulation, min_snr=min_snr, bit_gains=bit_gains)
+    if frame is None:
+        frame = FrameLevels.of(demod, spec, min_modulation=min_modulation, min_snr=min_snr, bit_gains=bit_gains)
     dc, reference, lit, scale = frame.dc, frame.reference, frame.lit, frame.bits
     levels = np.empty((bits, *dc.shape), dtype=np.float32)
     stripe = np.empty(dc.shape, dtype=np.int16)
