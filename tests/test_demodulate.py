@@ -172,6 +172,21 @@ def test_adaptive_window_keeps_a_step_out():
     assert np.all(adaptive.amplitude[0, 0, 305:320] < 1e-3)  # shadow side stays dark
 
 
+def test_a_shadow_between_two_edges_stays_dark():
+    """A cast shadow on a bright square, a window and 4 px wide between the lit carriers and a
+    dark square: its centred windows hold no carrier, but only a box between the three
+    placements of the flat field is clean for most of its pixels.  Before the flat field
+    looked at every box holding the pixel (fifty-fifth session), the line divided by a flat
+    field that ramped across the stretch read 0.17 of the DC on the lowest carrier in its
+    middle (a 1280x960 capture's stripe 0 decoded in such a shadow, 1.3 m off); now nothing."""
+    image, carriers = synthetic_lines(amplitudes=(0.1, 0.05, 0.08, 0.04), slope=0)
+    image[:, 300:354] = 0.11  # the window is 50 px
+    image[:, 354:] = 0.03
+    out = demodulate_window(image, carriers, albedo=None)
+    middle = slice(318, 336)
+    assert np.all(out.amplitude[:, :, middle] < 1e-3 * out.dc[:, middle])
+
+
 @pytest.mark.parametrize("follow_scale", [False, True])
 def test_the_centred_envelopes_are_those_of_the_centred_fit(follow_scale):
     # a shadow at x = 300 makes the windows next to it one-sided; `Demodulated.centred` keeps

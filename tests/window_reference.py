@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.demodulate import FLAT_GAIN, PLACEMENT_GAIN, Carriers
+from sliscan.demodulate import FLAT_GAIN, PLACEMENT_GAIN, UNLIT_GAIN, Carriers
 
 
 def window_starts(width: int, window: int, placement: int, half: int) -> NDArray[np.intp]:
@@ -28,7 +28,8 @@ def window_means(values: NDArray[np.float64], window: int) -> NDArray[np.float64
 
 def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     """Local mean of each pixel over a box of `window` pixels, centred on the pixel unless a
-    box ending or starting at it varies much less relative to its mean."""
+    box ending or starting at it varies much less relative to its mean, or the least varying
+    box that holds it is flat beside the centred one."""
     means = window_means(line, window)
     variation = (window_means(line * line, window) - means**2) / np.maximum(means**2, 1e-12)
     centred = window_starts(line.size, window, 0, window // 2)
@@ -37,7 +38,12 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
         start = window_starts(line.size, window, placement, window // 2)
         better = (variation[start] < variation[best]) & (variation[start] < FLAT_GAIN * variation[centred])
         best = np.where(better, start, best)
-    return means[best]
+    starts = np.arange(line.size)[:, None] - np.arange(window)[None, :]  # every box holding each pixel
+    holding = (starts >= 0) & (starts < means.size)
+    least = np.where(holding, variation[np.clip(starts, 0, means.size - 1)], np.inf)
+    darkest = np.take_along_axis(starts, np.argmin(least, axis=1)[:, None], axis=1)[:, 0]
+    unlit = variation[darkest] < UNLIT_GAIN * variation[centred]
+    return means[np.where(unlit, darkest, best)]
 
 
 def fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int,
