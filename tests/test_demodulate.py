@@ -178,7 +178,7 @@ def test_a_shadow_between_two_edges_stays_dark():
     placements of the flat field is clean for most of its pixels.  Before the flat field
     looked at every box holding the pixel (fifty-fifth session), the line divided by a flat
     field that ramped across the stretch read 0.17 of the DC on the lowest carrier in its
-    middle (a 1280x960 capture's stripe 0 decoded in such a shadow, 1.3 m off); now nothing."""
+    middle (a 1280x960 capture's stripe 0 decoded in such a shadow, more than 1 m off); now nothing."""
     image, carriers = synthetic_lines(amplitudes=(0.1, 0.05, 0.08, 0.04), slope=0)
     image[:, 300:354] = 0.11  # the window is 50 px
     image[:, 354:] = 0.03

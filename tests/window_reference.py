@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sliscan.demodulate import FLAT_GAIN, PLACEMENT_GAIN, UNLIT_GAIN, Carriers
+from sliscan.demodulate import FLAT_GAIN, FLAT_STRETCH_GAIN, PLACEMENT_GAIN, Carriers
 
 
 def window_starts(width: int, window: int, placement: int, half: int) -> NDArray[np.intp]:
@@ -41,9 +41,9 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     starts = np.arange(line.size)[:, None] - np.arange(window)[None, :]  # every box holding each pixel
     holding = (starts >= 0) & (starts < means.size)
     least = np.where(holding, variation[np.clip(starts, 0, means.size - 1)], np.inf)
-    darkest = np.take_along_axis(starts, np.argmin(least, axis=1)[:, None], axis=1)[:, 0]
-    unlit = variation[darkest] < UNLIT_GAIN * variation[centred]
-    return means[np.where(unlit, darkest, best)]
+    flattest = np.take_along_axis(starts, np.argmin(least, axis=1)[:, None], axis=1)[:, 0]
+    stretch = variation[flattest] < FLAT_STRETCH_GAIN * variation[centred]
+    return means[np.where(stretch, flattest, best)]
 
 
 def fit_line(line: NDArray[np.float32], omega: NDArray[np.float64], window: int, short: int,

@@ -444,7 +444,7 @@ FLAT_GAIN = 0.1
 #: edges"): all three mend the shadow that asked for it, 0.005 also flattened lit stretches whose
 #: carriers the blur or a steep slope had washed out (a plane turned 60 degrees: the thesis
 #: pattern's gross outliers 6.0 -> 9.2 %), and this ratio moves the fewest other captures.
-UNLIT_GAIN = 0.01
+FLAT_STRETCH_GAIN = 0.01
 #: Offset of a window's start from the pixel, per placement: centred (tried first, the
 #: default), ending at the pixel, starting at it.
 _PLACEMENTS = (0, -1, 1)
@@ -474,9 +474,9 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
     at the pixel) varies much less relative to its mean (`FLAT_GAIN`): then the centred one
     straddles an albedo edge or a shadow border and the one-sided one does not.  And where the
     least varying of all the boxes that hold the pixel is flat beside the centred one
-    (`UNLIT_GAIN`), it gives the mean: a shadow between two edges less than two windows apart
-    has no clean box among the three placements, and a flat field that ramps across it puts
-    carriers into the line divided by it."""
+    (`FLAT_STRETCH_GAIN`), it gives the mean: a shadow between two edges less than two windows
+    apart has no clean box among the three placements, and a flat field that ramps across it
+    puts carriers into the line divided by it."""
     width = line.size
     cum, cum2 = _cumsum0(line), _cumsum0(line * line)
     n_starts = width - window + 1
@@ -497,9 +497,9 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
             if variations[s] < variations[best] and variations[s] < FLAT_GAIN * variations[centre]:
                 best = s
         # the boxes that hold x start at max(x - window + 1, 0) .. min(x, last)
-        darkest = least[x] if x <= last else least_after[x - window + 1]
-        if variations[darkest] < UNLIT_GAIN * variations[centre]:
-            best = darkest
+        flattest = least[x] if x <= last else least_after[x - window + 1]
+        if variations[flattest] < FLAT_STRETCH_GAIN * variations[centre]:
+            best = flattest
         out[x] = means[best]
     return out
 
