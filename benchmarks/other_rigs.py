@@ -33,6 +33,7 @@ from sliscan.pipeline import Scanner
 
 
 def checker(square_mm: float, low: float = 0.25) -> simulate.CheckerAlbedo:
+    """A checker of `square_mm` squares, reflectance `low` / 0.9."""
     return simulate.CheckerAlbedo(square_mm=square_mm, low=low, high=0.9)
 
 
