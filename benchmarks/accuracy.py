@@ -37,7 +37,7 @@ from sliscan import patterns, simulate
 from sliscan.evaluate import accuracy, sphere_fit, stripe_depth, surface_accuracy
 from sliscan.pipeline import Scanner
 
-from methods import method_specs, render_captures
+from methods import method_specs, render_captures, truth_arrays, truth_from
 
 SCENES = {
     "sphere": simulate.sphere_scene,
@@ -291,11 +291,10 @@ def render_cached(folder: str | None, key: str, render) -> simulate.Capture:
     path = Path(folder) / (key.replace(" ", "-") + ".npz")
     if path.exists():
         with np.load(path) as saved:
-            truth = simulate.GroundTruth(**{k[6:]: saved[k] for k in saved.files if k.startswith("truth_")})
-            return simulate.Capture(image=saved["image"], truth=truth)
+            return simulate.Capture(image=saved["image"], truth=truth_from(saved))
     capture = render()
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, image=capture.image, **{f"truth_{k}": v for k, v in vars(capture.truth).items()})
+    np.savez(path, image=capture.image, **truth_arrays(capture.truth))
     return capture
 
 

@@ -8,7 +8,7 @@ them.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,3 +54,14 @@ def render_captures(rig: simulate.Rig, scene: simulate.Surface, specs: Sequence[
     frames = [capture.images[end - len(d):end] if m else capture.images[end - 1]
               for d, end, m in zip(drives, ends, multi)]
     return frames, capture.truth
+
+
+def truth_arrays(truth: simulate.GroundTruth) -> dict[str, NDArray]:
+    """A ground truth's arrays as ``truth_<field>`` keys, for `np.savez` beside its frames."""
+    return {f"truth_{name}": value for name, value in vars(truth).items()}
+
+
+def truth_from(saved: Mapping[str, NDArray]) -> simulate.GroundTruth:
+    """The ground truth that `truth_arrays` saved (an open npz or a dict)."""
+    return simulate.GroundTruth(**{key[6:]: saved[key] for key in saved if key.startswith("truth_")})
+

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from methods import render_captures
+from methods import render_captures, truth_arrays, truth_from
 from sliscan import InputError, patterns, simulate
 from sliscan.evaluate import accuracy
 from sliscan.pipeline import Scanner
@@ -61,8 +61,7 @@ def captures(name: str, folder: str | None, specs: list[patterns.PatternSpec]) -
     path = Path(folder) / f"{name}.npz" if folder else None
     if path is not None and path.exists():
         with np.load(path) as saved:
-            truth = simulate.GroundTruth(**{k[6:]: saved[k] for k in saved.files if k.startswith("truth_")})
-            return list(saved["frames"]), truth
+            return list(saved["frames"]), truth_from(saved)
     rig = simulate.virtual_rig(camera_size=camera, projector_size=(1024, 768))
     conditions = simulate.Conditions(albedo=albedo or simulate.SmoothAlbedo(low=0.15, high=1.0, seed=seed),
                                      ambient=ambient, projector_gamma=2.2, projector_blur_px=blur,
@@ -70,7 +69,7 @@ def captures(name: str, folder: str | None, specs: list[patterns.PatternSpec]) -
     frames, truth = render_captures(rig, scene(), specs, conditions)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, frames=np.array(frames), **{f"truth_{k}": v for k, v in vars(truth).items()})
+        np.savez(path, frames=np.array(frames), **truth_arrays(truth))
     return frames, truth
 
 

@@ -486,8 +486,13 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
         means[s] = mean
         variations[s] = ((cum2[s + window] - cum2[s]) / window - mean * mean) / max(mean * mean, 1e-12)
     least = _running_argmin(variations, window)  # least[e]: the least varying start in (e - window, e]
-    least_after = n_starts - 1 - _running_argmin(variations[::-1], window)[::-1]  # ... in [s, s + window)
     last = n_starts - 1
+    beyond = np.empty(width - n_starts, dtype=np.intp)  # x past the last start: of x - window + 1 .. last,
+    flattest = last  # a minimum grown backward from the line's end
+    for x in range(width - 1, last, -1):
+        if variations[x - window + 1] <= variations[flattest]:
+            flattest = x - window + 1
+        beyond[x - n_starts] = flattest
     out = np.empty(width)
     for x in range(width):
         centre = _window_start(x, width, window, _PLACEMENTS[0])
@@ -497,7 +502,7 @@ def flat_field(line: NDArray[np.float64], window: int) -> NDArray[np.float64]:
             if variations[s] < variations[best] and variations[s] < FLAT_GAIN * variations[centre]:
                 best = s
         # the boxes that hold x start at max(x - window + 1, 0) .. min(x, last)
-        flattest = least[x] if x <= last else least_after[x - window + 1]
+        flattest = least[x] if x <= last else beyond[x - n_starts]
         if variations[flattest] < FLAT_STRETCH_GAIN * variations[centre]:
             best = flattest
         out[x] = means[best]
